@@ -1,0 +1,37 @@
+# metricslam — the two commands a newcomer needs: `make demo` and `make test`.
+SHELL := /bin/bash
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+PYTEST_ARGS ?=
+
+.PHONY: install install-dev test demo clean
+
+$(BIN)/python:
+	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (Python 3.11) on PATH"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+# Runtime install: the project (editable) and its runtime dependencies; no torch.
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e .
+	@touch $@
+
+install: $(STAMP)
+
+# Tests also need the dev tools and the training extra (torch CPU wheel, pinned).
+$(VENV)/.installed-dev: $(STAMP) pyproject.toml
+	$(BIN)/pip install -q -e '.[dev,train]'
+	@touch $@
+
+install-dev: $(VENV)/.installed-dev
+
+test: install-dev
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+demo: install
+	$(BIN)/metricslam demo
+
+clean:
+	rm -rf $(VENV) .pytest_cache

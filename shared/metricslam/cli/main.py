@@ -1,0 +1,57 @@
+"""Entry point of the ``metricslam`` command.
+
+Subcommands are listed in :data:`COMMANDS` as ``name -> module``; each module defines
+``add_parser(subparsers) -> argparse.ArgumentParser`` that sets ``func(args) -> int`` as default.
+Modules must import only argparse-level things at top level so ``metricslam --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from metricslam.errors import MetricSlamError
+
+#: subcommand name -> module path. Add a line when a command lands.
+COMMANDS: dict[str, str] = {
+    "eval": "metricslam.cli.eval_cmd",
+}
+
+log = logging.getLogger("metricslam")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="metricslam",
+        description="Metrically-scaled monocular SLAM with learned scale factors.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module in COMMANDS.items():
+        importlib.import_module(module).add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except MetricSlamError as exc:
+        print(f"metricslam {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,96 @@
+"""One root exception for the whole project, one subclass per domain.
+
+Every message says what went wrong *and what to do about it*. Catch
+:class:`MetricSlamError` at service and CLI boundaries; never let one kill a loop.
+"""
+
+from __future__ import annotations
+
+
+class MetricSlamError(Exception):
+    """Root of every error metricslam raises on purpose."""
+
+
+class ConfigError(MetricSlamError):
+    """An algorithm config or service setting is invalid."""
+
+
+class GeometryError(MetricSlamError):
+    """Invalid input to a geometry helper (wrong shape, not a rotation, ...)."""
+
+
+class AlignmentError(GeometryError):
+    """Trajectory alignment is degenerate (too few or collinear points)."""
+
+
+class CameraError(MetricSlamError):
+    """Invalid camera intrinsics or calibration."""
+
+
+class DatasetError(MetricSlamError):
+    """A dataset file is missing or malformed.
+
+    Args:
+        message: what was expected.
+        path: the offending file, if any.
+        line: 1-based line number in that file, if known.
+    """
+
+    def __init__(self, message: str, path: object = None, line: int | None = None) -> None:
+        self.path = None if path is None else str(path)
+        self.line = line
+        where = ""
+        if self.path is not None:
+            where = f"{self.path}"
+            if line is not None:
+                where += f":{line}"
+            where += ": "
+        super().__init__(f"{where}{message}")
+
+
+class CalibrationError(DatasetError):
+    """A calibration file is missing or malformed."""
+
+
+class TrajectoryError(DatasetError):
+    """A trajectory file is missing or malformed, or two trajectories do not match."""
+
+
+class EvaluationError(MetricSlamError):
+    """The evaluator cannot compute a metric for the given trajectories."""
+
+
+class DepthModelError(MetricSlamError):
+    """The depth model file is missing, or its metadata does not match the code."""
+
+
+class DepthSourceError(MetricSlamError):
+    """A depth source (in-process model or HTTP service) failed to answer."""
+
+
+class ImageError(MetricSlamError):
+    """An image could not be decoded or has an unsupported shape/dtype."""
+
+
+class VOError(MetricSlamError):
+    """Local visual odometry failed internally (never raised out of ``process``)."""
+
+
+class GraphError(MetricSlamError):
+    """The global pose graph rejected an input or failed to solve."""
+
+
+class CodecError(MetricSlamError):
+    """A wire message could not be encoded or decoded."""
+
+
+class SynthError(MetricSlamError):
+    """The synthetic world generator got invalid parameters."""
+
+
+class ServiceError(MetricSlamError):
+    """A service could not start or a child process failed."""
+
+
+class TrainingError(MetricSlamError):
+    """Training configuration or data is invalid."""

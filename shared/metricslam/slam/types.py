@@ -1,0 +1,86 @@
+"""Plain message types that pass between the SLAM core's parts and its adapters.
+
+The local VO hands :class:`MarginalizedKeyframe` to a :class:`KeyframeConsumer` (the global
+graph); every processed frame yields a :class:`PoseEstimate`. Frames and units are in the names.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+
+
+class TrackingState(str, enum.Enum):
+    """Per-frame tracking state."""
+
+    INITIALIZING = "initializing"  # no map yet (waiting for parallax)
+    TRACKING = "tracking"
+    LOST = "lost"  # this frame could not be tracked; a new segment starts after re-init
+    INVALID_FRAME = "invalid_frame"  # corrupt/blank input; pose is the last known one
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The pose of one input frame.
+
+    Attributes:
+        frame_index: index of the input frame.
+        t_ns: its timestamp (ns).
+        T_world_cam: (4, 4) camera-to-world; metric once ``scale_established``.
+        state: tracking state of this frame.
+        is_keyframe: whether this frame became a keyframe.
+        segment_id: increments after each tracking loss (each segment has its own world frame
+            until something relates them).
+        scale_established: True when learned scale factors have fixed the metric scale.
+    """
+
+    frame_index: int
+    t_ns: int
+    T_world_cam: np.ndarray
+    state: TrackingState
+    is_keyframe: bool = False
+    segment_id: int = 0
+    scale_established: bool = False
+
+
+@dataclass(frozen=True)
+class MarginalizedKeyframe:
+    """A keyframe leaving the local window, with what the global graph needs.
+
+    Attributes:
+        kf_id: unique increasing keyframe id.
+        frame_index: index of the input frame that became this keyframe.
+        t_ns: its timestamp (ns).
+        segment_id: tracking segment.
+        T_vo_kf: (4, 4) keyframe pose in the local VO's world frame (VO scale) at marginalization.
+        T_prevkf_kf: (4, 4) pose relative to the previously marginalized keyframe of the same
+            segment (VO scale), or None for a segment's first keyframe.
+        landmarks_uv_px: (M, 2) pixels of the keyframe's child landmarks in this keyframe.
+        landmarks_inv_depth: (M,) their VO inverse depths ξ_j (1/VO-units), > 0.
+        image: the keyframe image (H, W) uint8 gray (for depth and place recognition).
+        camera: intrinsics of ``image``.
+        information: optional (6, 6) information of ``T_prevkf_kf`` in tangent ``[ω, v]``.
+    """
+
+    kf_id: int
+    frame_index: int
+    t_ns: int
+    segment_id: int
+    T_vo_kf: np.ndarray
+    T_prevkf_kf: np.ndarray | None
+    landmarks_uv_px: np.ndarray
+    landmarks_inv_depth: np.ndarray
+    image: np.ndarray
+    camera: PinholeCamera
+    information: np.ndarray | None = field(default=None)
+
+
+class KeyframeConsumer(Protocol):
+    """Receives marginalized keyframes (the global graph implements this)."""
+
+    def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None: ...
