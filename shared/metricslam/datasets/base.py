@@ -27,6 +27,8 @@ class Frame:
         baseline_m: stereo baseline in metres (right camera at +x), or None.
         T_world_cam: ground-truth pose of the left camera (4, 4), or None. Never fed to an
             estimator: only evaluators read it.
+        depth_m: ground-truth depth of the left image (H, W) float32 metres (0 = unknown), or
+            None (synthetic sequences and LiDAR sets have it). Never fed to an estimator.
     """
 
     index: int
@@ -36,6 +38,7 @@ class Frame:
     image_right: np.ndarray | None = None
     baseline_m: float | None = None
     T_world_cam: np.ndarray | None = None
+    depth_m: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from metricslam.camera import PinholeCamera
+from metricslam.datasets.base import Frame
 
 
 class TrackingState(str, enum.Enum):
@@ -84,3 +85,25 @@ class KeyframeConsumer(Protocol):
     """Receives marginalized keyframes (the global graph implements this)."""
 
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None: ...
+
+
+class SlamSession(Protocol):
+    """One camera's SLAM: the object services and the offline runner drive.
+
+    ``process`` never raises on bad input: a corrupt frame yields a pose with
+    ``state=INVALID_FRAME`` and tracking failures yield ``LOST`` (then re-initialization).
+    """
+
+    def process(self, frame: Frame) -> PoseEstimate: ...
+
+    def trajectory(self) -> list[PoseEstimate]:
+        """The current best pose of every frame processed so far, in frame order."""
+        ...
+
+    def stats(self) -> dict:
+        """Counters and per-stage timings (ms) for reporting."""
+        ...
+
+    def close(self) -> None:
+        """Stop background workers and flush pending work (e.g. the last keyframes)."""
+        ...
