@@ -107,3 +107,29 @@ class SlamSession(Protocol):
     def close(self) -> None:
         """Stop background workers and flush pending work (e.g. the last keyframes)."""
         ...
+
+
+class Backend(KeyframeConsumer, Protocol):
+    """The global back end the pipeline feeds (the Sim(3) graph implements it).
+
+    The pipeline hands it every marginalized keyframe; after each global solve the back end
+    offers a correction that the pipeline applies to the local VO (the paper's "warp"), so the
+    newest pose is metric.
+    """
+
+    def take_correction(self) -> np.ndarray | None:
+        """A Sim(3) ``S_new_vo`` (4, 4) to apply to the local VO's world frame, once; None if
+        no new solve happened since the last call."""
+        ...
+
+    def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """``frame_index -> S_world_kf`` (4, 4 Sim(3); its scale maps VO units of that keyframe
+        to metres) for every keyframe in the global graph, after the latest solve."""
+        ...
+
+    @property
+    def scale_established(self) -> bool: ...
+
+    def close(self) -> None:
+        """Finish pending work (depth requests, last solve) and stop workers."""
+        ...
