@@ -1,0 +1,103 @@
+"""Export a training checkpoint to ONNX with the :class:`ModelContract` in its metadata.
+
+The graph takes the normalized gray image ``image`` (B, 1, H, W) float32 (dynamic batch) and
+returns ``d_frac_l3`` (B, H/8, W/8) float32: the left L3 disparity as a fraction of image width.
+
+Example::
+
+    python -m metricslam_train.export runs/depth/last.pt --out model.onnx
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import subprocess
+from pathlib import Path
+
+import onnx
+import torch
+
+from metricslam.depth.contract import ModelContract, Normalization
+from metricslam.errors import TrainingError
+from metricslam_train.network import ExportWrapper, PyramidDepthNet, count_parameters
+
+OPSET = 17
+
+
+def git_commit(repo_dir: Path | None = None) -> str:
+    """Current git commit id (with ``+dirty`` when the work tree has changes), or ``"unknown"``."""
+    cwd = str(repo_dir or Path(__file__).resolve().parent)
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True,
+                                check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return commit
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint written by :mod:`metricslam_train.train`."""
+    ckpt_path = Path(path)
+    if not ckpt_path.is_file():
+        raise TrainingError(f"checkpoint {ckpt_path} does not exist: pass a .pt file written by `metricslam train`")
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    for key in ("model", "meta"):
+        if key not in ckpt:
+            raise TrainingError(f"{ckpt_path} lacks {key!r}: not a metricslam training checkpoint")
+    return ckpt
+
+
+def network_from_checkpoint(ckpt: dict) -> PyramidDepthNet:
+    """Rebuild the network and load its weights (eval mode)."""
+    net = PyramidDepthNet(max_d_frac=float(ckpt["meta"]["max_d_frac"]))
+    net.load_state_dict(ckpt["model"])
+    return net.eval()
+
+
+def contract_for(net: PyramidDepthNet, meta: dict, model_id: str | None = None) -> ModelContract:
+    """Build the contract from a checkpoint's ``meta`` dict."""
+    h, w = int(meta["input_height"]), int(meta["input_width"])
+    return ModelContract(
+        model_id=model_id or str(meta.get("model_id", "pyramid-l3")),
+        input_height=h,
+        input_width=w,
+        normalization=Normalization(**meta["normalization"]),
+        output_height=h // 8,
+        output_width=w // 8,
+        baseline_m=float(meta["baseline_m"]),
+        params=count_parameters(net),
+        training_data=str(meta["training_data"]),
+        training_commit=str(meta.get("training_commit", "unknown")),
+        created=_dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
+    )
+
+
+def export_onnx(net: PyramidDepthNet, contract: ModelContract, out_path: str | Path) -> Path:
+    """Write ``net`` to ``out_path`` as ONNX with ``contract`` in ``metadata_props``."""
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    wrapper = ExportWrapper(net.eval())
+    dummy = torch.zeros(1, contract.input_channels, contract.input_height, contract.input_width)
+    with torch.no_grad():
+        torch.onnx.export(
+            wrapper, (dummy,), str(out), input_names=[contract.input_name], output_names=[contract.output_name],
+            dynamic_axes={contract.input_name: {0: "batch"}, contract.output_name: {0: "batch"}},
+            opset_version=OPSET, dynamo=False,
+        )
+    model = onnx.load(str(out))
+    del model.metadata_props[:]
+    for key, value in contract.to_metadata().items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(model)
+    onnx.save(model, str(out))
+    return out
+
+
+def export_checkpoint(ckpt_path: str | Path, out_path: str | Path, model_id: str | None = None) -> ModelContract:
+    """Checkpoint -> ONNX; returns the contract written."""
+    ckpt = load_checkpoint(ckpt_path)
+    net = network_from_checkpoint(ckpt)
+    contract = contract_for(net, ckpt["meta"], model_id)
+    export_onnx(net, contract, out_path)
+    return contract
