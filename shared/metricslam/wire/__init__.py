@@ -1,0 +1,22 @@
+"""Wire messages of the SLAM stack (Zenoh payloads) and their key expressions.
+
+Pure: importing this never imports zenoh. ``codec`` owns encoding; ``keys`` owns key expressions.
+"""
+
+from metricslam.wire.codec import (
+    CalibrationMessage,
+    FrameMessage,
+    KeyframeMessage,
+    Message,
+    PoseMessage,
+    StatusMessage,
+    TrajectoryMessage,
+    decode,
+    decode_as,
+    encode,
+)
+
+__all__ = [
+    "CalibrationMessage", "FrameMessage", "KeyframeMessage", "Message", "PoseMessage",
+    "StatusMessage", "TrajectoryMessage", "decode", "decode_as", "encode",
+]

@@ -1,0 +1,58 @@
+"""Zenoh key expressions of the SLAM stack (pure strings; no zenoh import).
+
+Per camera ``<camera_id>``::
+
+    metricslam/<camera_id>/frame        in   FrameMessage (image + intrinsics)
+    metricslam/<camera_id>/calibration  in   CalibrationMessage (optional; frames carry it too)
+    metricslam/<camera_id>/pose         out  PoseMessage, one per input frame
+    metricslam/<camera_id>/keyframe     out  KeyframeMessage, one per new keyframe
+    metricslam/<camera_id>/status       out  StatusMessage, periodically
+    metricslam/<camera_id>/trajectory   queryable -> TrajectoryMessage (whole current trajectory)
+    metricslam/_service/health          queryable -> JSON of the SLAM service's readiness
+
+Camera ids are one key chunk: letters, digits, ``-``, ``_`` and ``.``; they may not start with
+``_`` (reserved for service keys).
+"""
+
+from __future__ import annotations
+
+import re
+
+from metricslam.errors import CodecError
+
+PREFIX = "metricslam"
+HEALTH_KEY = f"{PREFIX}/_service/health"
+_CAMERA_ID_RE = re.compile(r"^[A-Za-z0-9.\-][A-Za-z0-9_.\-]{0,63}$")
+TOPICS = ("frame", "calibration", "pose", "keyframe", "status", "trajectory")
+
+
+def check_camera_id(camera_id: str) -> str:
+    """Return ``camera_id`` if it is a valid single key chunk, else raise :class:`CodecError`."""
+    if not isinstance(camera_id, str) or not _CAMERA_ID_RE.match(camera_id):
+        raise CodecError(
+            f"invalid camera id {camera_id!r}: use 1-64 letters, digits, '-', '_' or '.', "
+            "not starting with '_'"
+        )
+    return camera_id
+
+
+def key(camera_id: str, topic: str) -> str:
+    """``metricslam/<camera_id>/<topic>`` for one of :data:`TOPICS`."""
+    if topic not in TOPICS:
+        raise CodecError(f"unknown topic {topic!r}; expected one of {TOPICS}")
+    return f"{PREFIX}/{check_camera_id(camera_id)}/{topic}"
+
+
+def wildcard(topic: str) -> str:
+    """``metricslam/*/<topic>``: every camera's ``topic``."""
+    if topic not in TOPICS:
+        raise CodecError(f"unknown topic {topic!r}; expected one of {TOPICS}")
+    return f"{PREFIX}/*/{topic}"
+
+
+def parse_key(key_expr: str) -> tuple[str, str]:
+    """``metricslam/<camera_id>/<topic>`` -> ``(camera_id, topic)``; raises :class:`CodecError`."""
+    parts = str(key_expr).split("/")
+    if len(parts) != 3 or parts[0] != PREFIX or parts[2] not in TOPICS:
+        raise CodecError(f"key {key_expr!r} is not of the form {PREFIX}/<camera_id>/<topic>")
+    return check_camera_id(parts[1]), parts[2]
