@@ -17,6 +17,7 @@ from metricslam.errors import MetricSlamError
 #: subcommand name -> module path. Add a line when a command lands.
 COMMANDS: dict[str, str] = {
     "eval": "metricslam.cli.eval_cmd",
+    "depth-service": "metricslam.cli.depth_service_cmd",
 }
 
 log = logging.getLogger("metricslam")

@@ -1,0 +1,112 @@
+"""Bounded admission of CPU work: a fixed worker pool, a bounded wait queue, explicit refusals.
+
+Policy (stated once, here):
+
+* at most ``max_concurrency`` jobs run at once, each on a worker thread (never on the event loop);
+* up to ``max_queue`` more requests may wait for a slot; one more is refused at once with
+  **429** (``Retry-After``) — the caller should back off;
+* a request that waited ``timeout_s`` without getting a slot is refused with **503**
+  (``Retry-After``) — the service is saturated, latency stays bounded instead of growing.
+
+A slot is released when its job *finishes* (not when its request goes away), so an abandoned
+request can never let more than ``max_concurrency`` jobs pile onto the CPU.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+from .errors import RequestProblem
+from .metrics import ServiceMetrics
+
+T = TypeVar("T")
+
+
+class AdmissionGate:
+    """Runs blocking callables on a bounded pool with a bounded, time-limited wait queue.
+
+    Args:
+        max_concurrency: worker threads (jobs running at once).
+        max_queue: requests allowed to wait for a worker.
+        timeout_s: longest wait for a worker before 503.
+        retry_after_s: value of the ``Retry-After`` header on refusals (seconds).
+        metrics: gauges/counters to update (queue depth, in flight, rejections).
+    """
+
+    def __init__(
+        self,
+        max_concurrency: int,
+        max_queue: int,
+        timeout_s: float,
+        retry_after_s: int,
+        metrics: ServiceMetrics,
+    ) -> None:
+        self._max_queue = max_queue
+        self._timeout_s = timeout_s
+        self._retry_headers = {"Retry-After": str(retry_after_s)}
+        self._metrics = metrics
+        self._slots = asyncio.Semaphore(max_concurrency)
+        self._waiting = 0
+        self._executor = ThreadPoolExecutor(max_concurrency, thread_name_prefix="depth-infer")
+
+    @property
+    def waiting(self) -> int:
+        """Requests waiting for a slot right now."""
+        return self._waiting
+
+    async def run(self, fn: Callable[[], T]) -> T:
+        """Run ``fn()`` on a worker thread once a slot is free; return its result.
+
+        Raises:
+            RequestProblem: 429 when the queue is full, 503 after waiting ``timeout_s``.
+        """
+        await self._admit()
+        self._metrics.inflight.inc()
+        try:
+            future = asyncio.get_running_loop().run_in_executor(self._executor, fn)
+        except BaseException:
+            self._release(None)
+            raise
+        future.add_done_callback(self._release)
+        return await future
+
+    async def _admit(self) -> None:
+        if self._slots.locked() and self._waiting >= self._max_queue:
+            self._metrics.rejected.labels("queue_full").inc()
+            raise RequestProblem(
+                429, "overloaded", "Too many requests queued",
+                f"{self._waiting} requests are already waiting for the network (limit "
+                f"{self._max_queue}); retry after the Retry-After delay, send fewer concurrent "
+                "requests, or run more service instances.",
+                headers=self._retry_headers,
+            )
+        self._waiting += 1
+        self._metrics.queue_depth.set(self._waiting)
+        t0 = time.perf_counter()
+        try:
+            async with asyncio.timeout(self._timeout_s):
+                await self._slots.acquire()
+        except TimeoutError:
+            self._metrics.rejected.labels("queue_timeout").inc()
+            raise RequestProblem(
+                503, "queue-timeout", "Service saturated",
+                f"no inference slot became free within {time.perf_counter() - t0:.1f} s "
+                f"(limit {self._timeout_s} s); retry after the Retry-After delay or lower the "
+                "request rate.",
+                headers=self._retry_headers,
+            ) from None
+        finally:
+            self._waiting -= 1
+            self._metrics.queue_depth.set(self._waiting)
+
+    def _release(self, _future: object) -> None:
+        self._metrics.inflight.dec()
+        self._slots.release()
+
+    def shutdown(self) -> None:
+        """Stop the worker threads after the jobs already submitted."""
+        self._executor.shutdown(wait=True, cancel_futures=True)

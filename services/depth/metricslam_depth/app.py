@@ -1,0 +1,113 @@
+"""``create_app(settings)``: the depth service as a FastAPI application.
+
+Life cycle: the lifespan starts loading the model on a background thread and the server
+answers at once — ``/healthz`` is 200 from the start, ``/readyz`` and the inference endpoints
+answer 503 (``Retry-After``) until the model is loaded, then 200. A model that fails to load
+keeps the service unready, and ``/readyz`` says why.
+
+Endpoints are in :mod:`metricslam_depth.routes`; error shapes in :mod:`metricslam_depth.errors`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+
+from fastapi import FastAPI
+
+from metricslam.depth import DepthModel
+
+from .admission import AdmissionGate
+from .errors import install_error_handlers
+from .metrics import MetricsMiddleware, ServiceMetrics
+from .pipeline import DepthPipeline
+from .settings import DepthServiceSettings
+
+log = logging.getLogger(__name__)
+
+API_VERSION = "1.0.0"
+
+
+@dataclass
+class ServiceState:
+    """Mutable state of one app, held in ``app.state.depth``.
+
+    ``pipeline`` is set exactly once, by the loader thread, when the model is ready;
+    ``load_error`` is set instead if loading failed.
+    """
+
+    settings: DepthServiceSettings
+    metrics: ServiceMetrics
+    gate: AdmissionGate | None = None
+    pipeline: DepthPipeline | None = None
+    load_error: str | None = None
+    loaded: threading.Event = field(default_factory=threading.Event)
+
+
+def _load_model(state: ServiceState) -> None:
+    s = state.settings
+    try:
+        model = DepthModel.load(s.model_path, threads=s.threads)
+    except Exception as exc:  # noqa: BLE001 - any failure must leave the service unready, not dead
+        state.load_error = str(exc)
+        log.error("depth model failed to load: %s", exc)
+        return
+    c = model.contract
+    log.info(
+        "depth model %s loaded: input %dx%d -> output %dx%d, baseline %.4f m, %d params, commit %s",
+        c.model_id, c.input_width, c.input_height, c.output_width, c.output_height,
+        c.baseline_m, c.params, c.training_commit,
+    )
+    state.pipeline = DepthPipeline(model, s.max_image_pixels, state.metrics)
+    state.metrics.model_loaded.set(1)
+    state.loaded.set()
+
+
+def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
+    """Build the app; nothing heavy happens until its lifespan starts.
+
+    Args:
+        settings: service settings; ``None`` reads them from the environment.
+    """
+    from .routes import router  # routes import schemas only; kept here to avoid a cycle
+
+    settings = settings or DepthServiceSettings()
+    metrics = ServiceMetrics()
+    state = ServiceState(settings=settings, metrics=metrics)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.log_summary()
+        state.gate = AdmissionGate(
+            settings.max_concurrency, settings.max_queue, settings.request_timeout_s,
+            settings.retry_after_s, metrics,
+        )
+        loader = threading.Thread(target=_load_model, args=(state,), name="depth-model-load", daemon=True)
+        loader.start()
+        try:
+            yield
+        finally:
+            await asyncio.to_thread(loader.join)
+            state.gate.shutdown()
+
+    app = FastAPI(
+        title="metricslam depth service",
+        version=API_VERSION,
+        summary="Coarse (L3) disparity and metric inverse depth from one image, by a tiny CNN.",
+        description=(
+            "POST an encoded PNG/JPEG image with the camera's fx; get the network's disparity "
+            "(fraction of image width) and the metric inverse depth for that camera. Errors are "
+            "RFC 9457 problem bodies that say what to fix. See docs/depth_service.md."
+        ),
+        lifespan=lifespan,
+    )
+    app.state.depth = state
+    install_error_handlers(app)
+    app.include_router(router)
+    known = frozenset(getattr(r, "path", "") for r in [*app.routes, *router.routes]) - {""}
+    app.add_middleware(MetricsMiddleware, metrics=metrics, known_paths=known)
+    return app

@@ -1,0 +1,142 @@
+"""The CPU work of one request, run on a worker thread: decode -> network -> metric -> encode.
+
+Everything blocking lives here so the event loop only moves bytes. The response body is
+encoded on the worker too (JSON of 2x32x64 floats is not free), inside the admission slot.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from metricslam.depth import DepthModel
+from metricslam.disparity import inv_depth_from_width_fraction
+from metricslam.errors import ImageError
+
+from .errors import RequestProblem
+from .imaging import decode_image
+from .metrics import ServiceMetrics
+from .schemas import BatchResponse, DisparityResponse, DisparityResult
+
+
+@dataclass(frozen=True)
+class Upload:
+    """One encoded image as received: bytes and its normalised media type."""
+
+    data: bytes
+    media_type: str
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Network output for a list of uploads.
+
+    Attributes:
+        d_frac: (B, h, w) float32 disparity / image width.
+        inv_depth_per_m: (B, h, w) float32 metric inverse depth, 1/m, for ``fx_px``.
+        sizes_px: (width, height) of each uploaded image.
+        fx_px: the caller's focal length (pixels, at the uploaded resolution).
+        inference_ms: network time (milliseconds) for the whole list.
+    """
+
+    d_frac: np.ndarray
+    inv_depth_per_m: np.ndarray
+    sizes_px: list[tuple[int, int]]
+    fx_px: float
+    inference_ms: float
+
+
+class DepthPipeline:
+    """Turns uploads into :class:`Prediction` and renders them as JSON or ``.npy`` bytes.
+
+    Args:
+        model: the loaded network.
+        max_pixels: largest accepted decoded image.
+        metrics: where decode / inference times go.
+    """
+
+    def __init__(self, model: DepthModel, max_pixels: int, metrics: ServiceMetrics) -> None:
+        self.model = model
+        self.max_pixels = max_pixels
+        self.metrics = metrics
+
+    def predict(self, uploads: list[Upload], fx_px: float, route: str) -> Prediction:
+        """Decode every upload and run the network once on the whole list.
+
+        Raises:
+            RequestProblem: 400/413 for an image that cannot be used (says which one).
+        """
+        images = []
+        for index, upload in enumerate(uploads):
+            t0 = time.perf_counter()
+            try:
+                images.append(decode_image(upload.data, upload.media_type, self.max_pixels))
+            except RequestProblem as exc:
+                if len(uploads) > 1:
+                    exc.detail = f"image {index}: {exc.detail}"
+                raise
+            self.metrics.decode.observe(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        try:
+            d_frac = self.model.predict_d_frac(images)
+        except ImageError as exc:
+            raise RequestProblem(400, "unusable-image", "Image not usable", str(exc)) from exc
+        infer_s = time.perf_counter() - t0
+        self.metrics.inference.labels(route).observe(infer_s)
+        baseline_m = self.model.contract.baseline_m
+        inv = np.empty_like(d_frac)
+        sizes = []
+        for i, image in enumerate(images):
+            height_px, width_px = image.shape[:2]
+            sizes.append((int(width_px), int(height_px)))
+            inv[i] = inv_depth_from_width_fraction(d_frac[i], fx_px, float(width_px), baseline_m)
+        return Prediction(d_frac, inv, sizes, float(fx_px), infer_s * 1e3)
+
+    # ----- rendering (also on the worker thread) -----
+
+    def _result(self, p: Prediction, i: int) -> DisparityResult:
+        return DisparityResult.model_construct(
+            image_width_px=p.sizes_px[i][0],
+            image_height_px=p.sizes_px[i][1],
+            shape=(int(p.d_frac.shape[1]), int(p.d_frac.shape[2])),
+            d_frac=p.d_frac[i].tolist(),
+            inv_depth_per_m=p.inv_depth_per_m[i].tolist(),
+        )
+
+    def render_json(self, p: Prediction, batch: bool) -> bytes:
+        """JSON body: :class:`DisparityResponse` (single) or :class:`BatchResponse` (batch)."""
+        c = self.model.contract
+        if not batch:
+            one = self._result(p, 0)
+            body = DisparityResponse.model_construct(
+                **dict(one), model_id=c.model_id, fx_px=p.fx_px, baseline_m=c.baseline_m,
+                inference_ms=p.inference_ms,
+            )
+        else:
+            body = BatchResponse.model_construct(
+                model_id=c.model_id, fx_px=p.fx_px, baseline_m=c.baseline_m,
+                inference_ms=p.inference_ms, results=[self._result(p, i) for i in range(len(p.sizes_px))],
+            )
+        return body.model_dump_json().encode()
+
+    def render_npy(self, p: Prediction, batch: bool) -> tuple[bytes, dict[str, str]]:
+        """``.npy`` body — float32 (2,h,w) or (B,2,h,w) [d_frac, inv_depth_per_m] — and headers."""
+        stack = np.stack([p.d_frac, p.inv_depth_per_m], axis=1).astype(np.float32, copy=False)
+        if not batch:
+            stack = stack[0]
+        buffer = io.BytesIO()
+        np.save(buffer, np.ascontiguousarray(stack), allow_pickle=False)
+        c = self.model.contract
+        headers = {
+            "X-Model-Id": c.model_id,
+            "X-Fx-Px": repr(p.fx_px),
+            "X-Baseline-M": repr(c.baseline_m),
+            "X-Image-Width-Px": ",".join(str(w) for w, _ in p.sizes_px),
+            "X-Image-Height-Px": ",".join(str(h) for _, h in p.sizes_px),
+            "X-Inference-Ms": f"{p.inference_ms:.3f}",
+            "X-Array-Layout": ("(B,2,h,w)" if batch else "(2,h,w)") + " [d_frac, inv_depth_per_m]",
+        }
+        return buffer.getvalue(), headers
