@@ -16,6 +16,9 @@ from metricslam.errors import MetricSlamError
 
 #: subcommand name -> module path. Add a line when a command lands.
 COMMANDS: dict[str, str] = {
+    "depth": "metricslam.cli.depth_cmd",
+    "train": "metricslam.cli.train_cmd",
+    "export": "metricslam.cli.export_cmd",
     "eval": "metricslam.cli.eval_cmd",
     "depth-service": "metricslam.cli.depth_service_cmd",
 }

@@ -1,0 +1,76 @@
+"""Frozen training configuration, read from YAML (``metricslam train --config CONFIG.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from metricslam.errors import TrainingError
+
+
+class AugmentConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    p_flip: float = Field(0.5, ge=0, le=1)
+    gamma_range: tuple[float, float] = (0.8, 1.2)
+    brightness_range: tuple[float, float] = (0.7, 1.4)
+
+
+class LossConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    photo: float = 1.0
+    lr: float = 1.0
+    smooth: float = 0.1
+    sup: float = 10.0
+    #: pyramid levels the loss is summed over (0 = base 256x512 … 6); D0..D2 come from D3.
+    scales: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6)
+    #: Huber threshold of the supervision term, in d_frac (0.005 = 2.6 px at 512 wide).
+    huber_delta: float = Field(0.005, gt=0)
+
+
+class TrainConfig(BaseModel):
+    """Everything that determines a training run.
+
+    ``sequences`` are KITTI-layout stereo folders (``image_0``, ``image_1``, ``calib.txt``);
+    each is preprocessed once into ``cache_dir`` (uint8 pairs + SGBM disparity).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    model_id: str = "pyramid-l3"
+    sequences: tuple[str, ...]
+    cache_dir: str = "runs/depth_cache"
+    run_dir: str = "runs/depth"
+    frame_step: int = Field(1, ge=1)
+    train_baseline_m: float = Field(0.537, gt=0)
+    input_height: int = Field(256, gt=0, multiple_of=64)
+    input_width: int = Field(512, gt=0, multiple_of=64)
+    norm_mean: float = 0.45
+    norm_std: float = Field(0.25, gt=0)
+    max_d_frac: float = Field(0.3, gt=0, le=1)
+    steps: int = Field(3000, ge=1)
+    batch_size: int = Field(8, ge=1)
+    lr: float = Field(1e-4, gt=0)
+    #: fractions of ``steps`` after which the learning rate halves (the paper halves after epochs 30
+    #: and 40 of 100; our short CPU runs are far from converged by then, so we halve later)
+    lr_halve_at: tuple[float, ...] = (0.6, 0.8)
+    loss: LossConfig = LossConfig()
+    augment: AugmentConfig = AugmentConfig()
+    checkpoint_every: int = Field(250, ge=1)
+    seed: int = 0
+    threads: int = Field(1, ge=1)
+    device: str = "auto"
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "TrainConfig":
+        p = Path(path)
+        if not p.is_file():
+            raise TrainingError(f"config {p} does not exist (see configs/train_depth.yaml for an example)")
+        try:
+            raw = yaml.safe_load(p.read_text()) or {}
+            return cls(**raw)
+        except (yaml.YAMLError, ValidationError, TypeError) as exc:
+            raise TrainingError(f"{p}: invalid training config: {exc}") from exc

@@ -1,0 +1,208 @@
+"""Training pairs: rectified stereo from KITTI-layout folders, with block-matching supervision.
+
+A *KITTI-layout sequence folder* holds ``image_0/`` (left), ``image_1/`` (right), ``calib.txt``
+(``P0``/``P1`` 3x4; baseline = ``-P1[0,3] / P1[0,0]``). KITTI odometry sequences and the
+output of ``metricslam synth`` share it.
+
+:func:`build_cache` turns sequences into one compact ``.npz`` per sequence:
+
+* ``left``, ``right``: (N, H, W) uint8 gray at the network's base size (L0, 256x512 by default),
+  the whole image resized (no crop);
+* ``bm_left``, ``bm_right``: (N, H, W) float16 block-matching disparity as a **fraction of image
+  width** (0 = invalid), computed by OpenCV StereoSGBM on the **full-resolution** pair with a
+  left-right check (the right map from the mirrored, swapped pair);
+* ``baseline_ratio``: this rig's baseline / the model's training baseline. The network predicts
+  ``d_frac`` for the training baseline; photometric warps on this pair use ``d_frac·ratio``.
+
+:class:`StereoPairs` serves (left, right, bm_left, bm_right, ratio) tensors and
+:func:`augment` applies flip-with-swap, gamma and brightness on a batch.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from metricslam.errors import TrainingError
+
+
+@dataclass(frozen=True)
+class StereoSequence:
+    """Paths and calibration of one KITTI-layout stereo sequence (full resolution)."""
+
+    name: str
+    left_paths: tuple[Path, ...]
+    right_paths: tuple[Path, ...]
+    fx_px: float
+    baseline_m: float
+
+
+def _read_calib(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise TrainingError(f"{path} is missing: a stereo sequence folder needs calib.txt with P0 and P1")
+    out: dict[str, np.ndarray] = {}
+    for line in path.read_text().splitlines():
+        if ":" not in line or line.lstrip().startswith("#"):
+            continue
+        key, values = line.split(":", 1)
+        try:
+            out[key.strip()] = np.array([float(v) for v in values.split()])
+        except ValueError:
+            continue
+    return out
+
+
+def read_stereo_sequence(folder: str | Path, frame_step: int = 1) -> StereoSequence:
+    """Read a KITTI-layout folder (``image_0``, ``image_1``, ``calib.txt``)."""
+    root = Path(folder)
+    calib = _read_calib(root / "calib.txt")
+    if "P0" not in calib or "P1" not in calib or calib["P1"].size != 12:
+        raise TrainingError(f"{root / 'calib.txt'} needs P0 and P1 lines with 12 numbers each")
+    P1 = calib["P1"].reshape(3, 4)
+    fx_px = float(P1[0, 0])
+    baseline_m = float(-P1[0, 3] / P1[0, 0])
+    if not baseline_m > 0:
+        raise TrainingError(f"{root}: P1 gives baseline {baseline_m} m; expected the right camera at +x")
+    lefts = sorted((root / "image_0").glob("*.png"))
+    rights = [root / "image_1" / p.name for p in lefts]
+    if not lefts or not all(p.is_file() for p in rights):
+        raise TrainingError(f"{root}: needs matching image_0/*.png and image_1/*.png")
+    lefts, rights = lefts[::frame_step], rights[::frame_step]
+    name = root.name if not re.fullmatch(r"\d+", root.name) else f"kitti{root.name}"
+    return StereoSequence(name, tuple(lefts), tuple(rights), fx_px, baseline_m)
+
+
+def read_gray(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise TrainingError(f"cannot read image {path}")
+    return image
+
+
+def sgbm_matcher(num_disparities: int = 128, block_size: int = 5) -> cv2.StereoSGBM:
+    """OpenCV semi-global block matcher with settings that suit KITTI-like street scenes."""
+    return cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
+        P1=8 * block_size * block_size, P2=32 * block_size * block_size, disp12MaxDiff=1,
+        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
+def block_matching_pair(left: np.ndarray, right: np.ndarray, num_disparities: int = 128,
+                        lr_tol_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution SGBM disparities (px, float32, 0 = invalid) for the left and right images.
+
+    The right map comes from the mirrored, swapped pair; both are cross-checked
+    (``|d_l(u) − d_r(u − d_l(u))| ≤ lr_tol_px``).
+    """
+    matcher = sgbm_matcher(num_disparities)
+    d_left = matcher.compute(left, right).astype(np.float32) / 16.0
+    d_right = matcher.compute(right[:, ::-1].copy(), left[:, ::-1].copy()).astype(np.float32)[:, ::-1] / 16.0
+    d_left[d_left <= 0] = 0
+    d_right[d_right <= 0] = 0
+    h, w = left.shape
+    cols = np.arange(w)[None, :].repeat(h, 0)
+    rows = np.arange(h)[:, None].repeat(w, 1)
+    u_r = np.clip(np.round(cols - d_left).astype(int), 0, w - 1)
+    ok_l = (d_left > 0) & (np.abs(d_left - d_right[rows, u_r]) <= lr_tol_px)
+    u_l = np.clip(np.round(cols + d_right).astype(int), 0, w - 1)
+    ok_r = (d_right > 0) & (np.abs(d_right - d_left[rows, u_l]) <= lr_tol_px)
+    return np.where(ok_l, d_left, 0).astype(np.float32), np.where(ok_r, d_right, 0).astype(np.float32)
+
+
+def _resize_sparse(d_frac: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Masked area-resize of a sparse map (0 = invalid): mean of the valid source pixels per cell."""
+    valid = (d_frac > 0).astype(np.float32)
+    num = cv2.resize(d_frac * valid, (width, height), interpolation=cv2.INTER_AREA)
+    den = cv2.resize(valid, (width, height), interpolation=cv2.INTER_AREA)
+    out = np.where(den > 0.5, num / np.maximum(den, 1e-6), 0.0)
+    return out.astype(np.float32)
+
+
+def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m: float,
+                height: int = 256, width: int = 512, num_disparities: int = 128) -> Path:
+    """Write the compact training cache of one sequence (see module docstring)."""
+    from tqdm import tqdm
+
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    n = len(sequence.left_paths)
+    left = np.empty((n, height, width), np.uint8)
+    right = np.empty((n, height, width), np.uint8)
+    bm_left = np.empty((n, height, width), np.float16)
+    bm_right = np.empty((n, height, width), np.float16)
+    for i in tqdm(range(n), desc=f"cache {sequence.name}", leave=False):
+        full_l, full_r = read_gray(sequence.left_paths[i]), read_gray(sequence.right_paths[i])
+        if full_l.shape != full_r.shape:
+            raise TrainingError(f"{sequence.left_paths[i]} and its right image differ in size")
+        w_full = full_l.shape[1]
+        d_l, d_r = block_matching_pair(full_l, full_r, num_disparities)
+        left[i] = cv2.resize(full_l, (width, height), interpolation=cv2.INTER_AREA)
+        right[i] = cv2.resize(full_r, (width, height), interpolation=cv2.INTER_AREA)
+        bm_left[i] = _resize_sparse(d_l / w_full, height, width)
+        bm_right[i] = _resize_sparse(d_r / w_full, height, width)
+    np.savez_compressed(out, left=left, right=right, bm_left=bm_left, bm_right=bm_right,
+                        baseline_ratio=np.float32(sequence.baseline_m / train_baseline_m),
+                        name=sequence.name, fx_px=np.float32(sequence.fx_px))
+    return out
+
+
+class StereoPairs(torch.utils.data.Dataset):
+    """All pairs of several cache files; items are float tensors in [0, 1] / d_frac.
+
+    Item: ``(left (1,H,W), right (1,H,W), bm_left (1,H,W), bm_right (1,H,W), ratio ())``.
+    """
+
+    def __init__(self, cache_paths: list[str | Path]) -> None:
+        if not cache_paths:
+            raise TrainingError("no training caches given: list at least one sequence in the config")
+        parts = []
+        for path in cache_paths:
+            p = Path(path)
+            if not p.is_file():
+                raise TrainingError(f"cache {p} does not exist: build it with `metricslam train` (prepare step)")
+            with np.load(p) as z:
+                parts.append({k: z[k] for k in ("left", "right", "bm_left", "bm_right", "baseline_ratio")})
+        self.left = np.concatenate([p["left"] for p in parts])
+        self.right = np.concatenate([p["right"] for p in parts])
+        self.bm_left = np.concatenate([p["bm_left"] for p in parts])
+        self.bm_right = np.concatenate([p["bm_right"] for p in parts])
+        self.ratio = np.concatenate([np.full(len(p["left"]), p["baseline_ratio"], np.float32) for p in parts])
+
+    def __len__(self) -> int:
+        return len(self.left)
+
+    def __getitem__(self, i: int):
+        as_t = lambda a, s=1.0: torch.from_numpy(a[i].astype(np.float32) * s)[None]  # noqa: E731
+        return (as_t(self.left, 1 / 255), as_t(self.right, 1 / 255), as_t(self.bm_left), as_t(self.bm_right),
+                torch.tensor(self.ratio[i]))
+
+
+def augment(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_right: torch.Tensor,
+            generator: torch.Generator | None = None, p_flip: float = 0.5,
+            gamma_range: tuple[float, float] = (0.8, 1.2), brightness_range: tuple[float, float] = (0.5, 2.0)):
+    """Batch augmentation (B,1,H,W) in [0,1]: flip-with-swap, gamma, brightness.
+
+    Flip-with-swap: mirroring a rectified pair turns the left image into a valid *right* image,
+    so the mirrored pair is (mirror(right), mirror(left)) and the block-matching maps swap too.
+    Gamma and brightness are drawn once per pair (both images alike, so photoconsistency holds).
+    Colour shifts reduce to brightness for one gray channel.
+    """
+    b = left.shape[0]
+    flip = (torch.rand(b, generator=generator) < p_flip).view(b, 1, 1, 1)
+    new_left = torch.where(flip, right.flip(-1), left)
+    new_right = torch.where(flip, left.flip(-1), right)
+    new_bm_left = torch.where(flip, bm_right.flip(-1), bm_left)
+    new_bm_right = torch.where(flip, bm_left.flip(-1), bm_right)
+    lo, hi = gamma_range
+    gamma = (lo + (hi - lo) * torch.rand(b, generator=generator)).view(b, 1, 1, 1)
+    lo, hi = brightness_range
+    bright = (lo + (hi - lo) * torch.rand(b, generator=generator)).view(b, 1, 1, 1)
+    new_left = (new_left.clamp(0, 1) ** gamma * bright).clamp(0, 1)
+    new_right = (new_right.clamp(0, 1) ** gamma * bright).clamp(0, 1)
+    return new_left, new_right, new_bm_left, new_bm_right

@@ -1,0 +1,137 @@
+"""The paper's four loss terms (Eq. 3–7), at every scale, fine to coarse.
+
+Disparities are fractions of image width (``d_frac``), so one value means the same thing at
+every scale: a shift of ``d_frac·W_s`` pixels at width ``W_s``, i.e. ``2·d_frac`` in
+``grid_sample``'s normalized coordinates. Convention (positive disparities, right camera at +x):
+``I_l(u) = I_r(u − D_l(u))`` and ``I_r(u) = I_l(u + D_r(u))``. ``ratio`` (B,) rescales the
+predicted training-rig disparity to the pair's own rig (baseline / training baseline).
+
+Scales: the network gives D3..D6; D0..D2 are bilinear upsamplings of D3 (as in the paper). Each
+scale ``s`` compares images area-downsampled to ``H/2**s × W/2**s`` — so the photometric errors
+visible only at fine scales (D0..D2) still teach the coarse D3 ("fine-to-coarse").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+TERMS = ("photo", "lr", "smooth", "sup")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """λp, λlr, λr, λs of Eq. 3 (paper: 1, 1, 0.1, 10)."""
+
+    photo: float = 1.0
+    lr: float = 1.0
+    smooth: float = 0.1
+    sup: float = 10.0
+
+
+def warp_horizontal(image: torch.Tensor, shift_frac: torch.Tensor) -> torch.Tensor:
+    """Sample ``image`` (B,C,H,W) at ``u + shift_frac·W`` (shift (B,1,H,W), fraction of width).
+
+    Out-of-image samples replicate the border.
+    """
+    b, _, h, w = image.shape
+    ys = torch.linspace(-1 + 1 / h, 1 - 1 / h, h, device=image.device, dtype=image.dtype)
+    xs = torch.linspace(-1 + 1 / w, 1 - 1 / w, w, device=image.device, dtype=image.dtype)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    grid_x = gx.expand(b, h, w) + 2.0 * shift_frac[:, 0]
+    grid = torch.stack([grid_x, gy.expand(b, h, w)], dim=-1)
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def ssim_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(1 − SSIM)/2 per pixel with 3x3 means (Godard et al.), in [0, 1]."""
+    c1, c2 = 0.01**2, 0.03**2
+    mu_x, mu_y = F.avg_pool2d(x, 3, 1, 1), F.avg_pool2d(y, 3, 1, 1)
+    sigma_x = F.avg_pool2d(x * x, 3, 1, 1) - mu_x**2
+    sigma_y = F.avg_pool2d(y * y, 3, 1, 1) - mu_y**2
+    sigma_xy = F.avg_pool2d(x * y, 3, 1, 1) - mu_x * mu_y
+    ssim = ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
+    return ((1 - ssim) / 2).clamp(0, 1)
+
+
+def photometric(image: torch.Tensor, reconstruction: torch.Tensor, alpha: float = 0.85) -> torch.Tensor:
+    """Eq. 4: mean of α·(1−SSIM)/2 + (1−α)·|I − Î|."""
+    return (alpha * ssim_distance(image, reconstruction) + (1 - alpha) * (image - reconstruction).abs()).mean()
+
+
+def lr_consistency(d_left: torch.Tensor, d_right: torch.Tensor) -> torch.Tensor:
+    """Eq. 5: |D_l(u) − D_r(u − D_l(u))| + |D_r(u) − D_l(u + D_r(u))|, mean."""
+    right_in_left = warp_horizontal(d_right, -d_left)
+    left_in_right = warp_horizontal(d_left, d_right)
+    return (d_left - right_in_left).abs().mean() + (d_right - left_in_right).abs().mean()
+
+
+def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """Eq. 6 on the mean-normalized disparity (scale-free, so it does not pull depth far)."""
+    d = disp / (disp.mean(dim=(2, 3), keepdim=True) + 1e-7)
+    dx, dy = (d[..., :, 1:] - d[..., :, :-1]).abs(), (d[..., 1:, :] - d[..., :-1, :]).abs()
+    ix = (image[..., :, 1:] - image[..., :, :-1]).abs()
+    iy = (image[..., 1:, :] - image[..., :-1, :]).abs()
+    return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
+
+
+def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float) -> torch.Tensor:
+    """Eq. 7: Huber(D − B) over pixels where the block-matching target is valid (> 0)."""
+    valid = target > 0
+    if not bool(valid.any()):
+        return disp.sum() * 0.0
+    return F.huber_loss(disp[valid], target[valid], delta=huber_delta) / huber_delta
+
+
+def _down(x: torch.Tensor, factor: int) -> torch.Tensor:
+    return x if factor == 1 else F.avg_pool2d(x, factor)
+
+
+def _down_sparse(target: torch.Tensor, factor: int) -> torch.Tensor:
+    """Mean of the valid (> 0) values per cell; 0 where fewer than half are valid."""
+    if factor == 1:
+        return target
+    valid = (target > 0).to(target.dtype)
+    num, den = F.avg_pool2d(target * valid, factor), F.avg_pool2d(valid, factor)
+    return torch.where(den >= 0.5, num / den.clamp_min(1e-6), torch.zeros_like(num))
+
+
+def disparity_pyramid(outputs: list[torch.Tensor], scales: tuple[int, ...], base_hw: tuple[int, int]
+                      ) -> dict[int, torch.Tensor]:
+    """Map scale s -> (B,2,H/2**s,W/2**s): D3..D6 from the net, D0..D2 upsampled from D3."""
+    h, w = base_hw
+    pyramid: dict[int, torch.Tensor] = {}
+    for s in scales:
+        if s >= 3:
+            pyramid[s] = outputs[s - 3]
+        else:
+            pyramid[s] = F.interpolate(outputs[0], size=(h >> s, w >> s), mode="bilinear", align_corners=False)
+    return pyramid
+
+
+def total_loss(outputs: list[torch.Tensor], left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor,
+               bm_right: torch.Tensor, ratio: torch.Tensor, weights: LossWeights = LossWeights(),
+               scales: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6), huber_delta: float = 0.005,
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 3 summed over ``scales``. Returns (loss, per-term sums for logging)."""
+    pyramid = disparity_pyramid(outputs, scales, left.shape[-2:])
+    r = ratio.view(-1, 1, 1, 1).to(left.dtype)
+    sums = {t: left.new_zeros(()) for t in TERMS}
+    for s, disp in pyramid.items():
+        f = 2**s
+        il, ir = _down(left, f), _down(right, f)
+        dl, dr = disp[:, :1], disp[:, 1:]
+        dl_pair, dr_pair = dl * r, dr * r
+        left_hat = warp_horizontal(ir, -dl_pair)
+        right_hat = warp_horizontal(il, dr_pair)
+        sums["photo"] = sums["photo"] + photometric(il, left_hat) + photometric(ir, right_hat)
+        sums["lr"] = sums["lr"] + lr_consistency(dl_pair, dr_pair)
+        sums["smooth"] = sums["smooth"] + (edge_aware_smoothness(dl, il) + edge_aware_smoothness(dr, ir)) / f
+        if weights.sup > 0:
+            bl, br = _down_sparse(bm_left, f), _down_sparse(bm_right, f)
+            sums["sup"] = sums["sup"] + supervision(dl_pair, bl, huber_delta) + supervision(dr_pair, br, huber_delta)
+    loss = (weights.photo * sums["photo"] + weights.lr * sums["lr"] + weights.smooth * sums["smooth"]
+            + weights.sup * sums["sup"])
+    return loss, {t: float(v.detach()) for t, v in sums.items()}

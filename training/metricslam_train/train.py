@@ -1,0 +1,143 @@
+"""Resumable training loop: caches, augmentation, Eq. 3 loss, checkpoints, per-term log.
+
+Files in ``run_dir``: ``last.pt`` (resumable: model, optimizer, step, RNG), ``step_XXXXXX.pt``
+snapshots, ``log.jsonl`` (one line per step: every loss term and the learning rate),
+``config.yaml`` (the config used). Running again with the same ``run_dir`` resumes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from metricslam.errors import TrainingError
+from metricslam_train.config import TrainConfig
+from metricslam_train.data import StereoPairs, augment, build_cache, read_stereo_sequence
+from metricslam_train.export import git_commit
+from metricslam_train.losses import LossWeights, total_loss
+from metricslam_train.network import PyramidDepthNet, count_parameters
+
+log = logging.getLogger("metricslam.train")
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
+    """Build missing caches; return their paths and a description of the training set."""
+    paths, names = [], []
+    for folder in cfg.sequences:
+        seq = read_stereo_sequence(folder, cfg.frame_step)
+        tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}"
+        path = Path(cfg.cache_dir) / f"{tag}.npz"
+        if not path.is_file():
+            log.info("building cache %s from %s", path, folder)
+            build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width)
+        paths.append(path)
+        names.append(f"{seq.name} ({len(seq.left_paths)} pairs, {Path(folder).resolve()})")
+    return paths, "; ".join(names)
+
+
+def checkpoint_meta(cfg: TrainConfig, training_data: str) -> dict:
+    """What export needs to write the model contract."""
+    return {
+        "model_id": cfg.model_id,
+        "max_d_frac": cfg.max_d_frac,
+        "input_height": cfg.input_height,
+        "input_width": cfg.input_width,
+        "normalization": {"scale": 1 / 255, "mean": cfg.norm_mean, "std": cfg.norm_std},
+        "baseline_m": cfg.train_baseline_m,
+        "training_data": training_data,
+        "training_commit": git_commit(),
+    }
+
+
+def _lr_at(cfg: TrainConfig, step: int) -> float:
+    halvings = sum(step >= int(f * cfg.steps) for f in cfg.lr_halve_at)
+    return cfg.lr * 0.5**halvings
+
+
+def train(cfg: TrainConfig, progress: bool = True) -> Path:
+    """Train (or resume) to ``cfg.steps``; returns the path of the final checkpoint."""
+    from tqdm import tqdm
+
+    torch.set_num_threads(cfg.threads)
+    device = pick_device(cfg.device)
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
+    cache_paths, training_data = prepare_caches(cfg)
+    data = StereoPairs(cache_paths)
+    if len(data) < 1:
+        raise TrainingError("the training caches hold no pairs")
+
+    torch.manual_seed(cfg.seed)
+    net = PyramidDepthNet(max_d_frac=cfg.max_d_frac).to(device)
+    optim = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    rng = np.random.default_rng(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    step = 0
+    last = run_dir / "last.pt"
+    if last.is_file():
+        ckpt = torch.load(last, map_location=device, weights_only=False)
+        net.load_state_dict(ckpt["model"])
+        optim.load_state_dict(ckpt["optim"])
+        step = int(ckpt["step"])
+        rng.bit_generator.state = ckpt["np_rng"]
+        gen.set_state(ckpt["torch_rng"])
+        log.info("resumed from %s at step %d", last, step)
+    log.info("training %s: %d params, %d pairs, device %s", cfg.model_id, count_parameters(net), len(data), device)
+
+    meta = checkpoint_meta(cfg, training_data)
+    weights = LossWeights(cfg.loss.photo, cfg.loss.lr, cfg.loss.smooth, cfg.loss.sup)
+
+    def save(path: Path) -> None:
+        torch.save({"model": net.state_dict(), "optim": optim.state_dict(), "step": step, "meta": meta,
+                    "np_rng": rng.bit_generator.state, "torch_rng": gen.get_state(),
+                    "config": json.loads(cfg.model_dump_json())}, path.with_suffix(".tmp"))
+        path.with_suffix(".tmp").replace(path)
+
+    net.train()
+    bar = tqdm(total=cfg.steps, initial=step, disable=not progress, desc=cfg.model_id)
+    with (run_dir / "log.jsonl").open("a") as log_file:
+        while step < cfg.steps:
+            lr = _lr_at(cfg, step)
+            for group in optim.param_groups:
+                group["lr"] = lr
+            idx = rng.choice(len(data), size=min(cfg.batch_size, len(data)), replace=len(data) < cfg.batch_size)
+            batch = [data[int(i)] for i in idx]
+            left, right, bm_l, bm_r, ratio = (torch.stack(t) for t in zip(*batch))
+            a = cfg.augment
+            left, right, bm_l, bm_r = augment(left, right, bm_l, bm_r, gen, a.p_flip, a.gamma_range,
+                                              a.brightness_range)
+            left, right, bm_l, bm_r, ratio = (t.to(device) for t in (left, right, bm_l, bm_r, ratio))
+            t0 = time.perf_counter()
+            outputs = net((left - cfg.norm_mean) / cfg.norm_std)
+            loss, terms = total_loss(outputs, left, right, bm_l, bm_r, ratio, weights, cfg.loss.scales,
+                                     cfg.loss.huber_delta)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            step += 1
+            record = {"step": step, "loss": float(loss.detach()), **terms, "lr": lr,
+                      "d3_mean": float(outputs[0][:, 0].mean().detach()), "s": round(time.perf_counter() - t0, 4)}
+            log_file.write(json.dumps(record) + "\n")
+            bar.update(1)
+            bar.set_postfix(loss=f"{record['loss']:.3f}", photo=f"{terms['photo']:.3f}", sup=f"{terms['sup']:.3f}")
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                log_file.flush()
+                save(last)
+                save(run_dir / f"step_{step:06d}.pt")
+    bar.close()
+    final = run_dir / "final.pt"
+    save(final)
+    return final
