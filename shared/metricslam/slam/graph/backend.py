@@ -1,0 +1,352 @@
+"""``GlobalBackend``: marginalized keyframes -> global Sim(3) graph -> metric warp for the VO.
+
+Threads and queues (``GraphConfig.inline=False``):
+
+* the caller's (tracking) thread runs :meth:`GlobalBackend.on_keyframe_marginalized`, which only
+  records the keyframe (never dropped) and puts a depth request on a bounded queue
+  (``depth_queue_size``; when full the OLDEST request is dropped, so that keyframe gets no scale
+  factors) — it never waits on depth, loop detection or the solver;
+* a depth worker asks the :class:`~metricslam.slam.depth_source.DepthSource` for metric inverse
+  depth and turns it into per-landmark scale measurements ``ξ_j / z_j`` (eq. 12);
+* a graph worker inserts keyframes with their odometry (see :mod:`.odometry` for the units
+  bookkeeping across corrections), runs loop detection, adds scale factors and solves (ISAM2).
+  After a solve it offers the warp ``S_new_vo`` via :meth:`take_correction`.
+
+With ``inline=True`` everything runs inside ``on_keyframe_marginalized`` (deterministic).
+``depth_source=None`` means no learned scale at all (the ``--no-scale`` ablation: the first
+keyframe's scale is anchored instead).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from metricslam.errors import DepthSourceError, GraphError, MetricSlamError
+from metricslam.geometry import sim3
+from metricslam.slam.depth_source import DepthSource
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.odometry import (
+    VoFrameHistory,
+    odometry_information,
+    orthonormalize,
+    relative_sim3,
+)
+from metricslam.slam.graph.scale_factor import scale_measurements
+from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
+from metricslam.slam.types import MarginalizedKeyframe
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _KeyframeRecord:
+    kf_id: int
+    frame_index: int
+    segment_id: int
+    epoch: int
+    S_vo0_kf: np.ndarray  # keyframe pose in the epoch-0 VO frame (scale = its units -> epoch-0)
+    step_length: float = 1.0  # odometry step into this keyframe, in its predecessor's units
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """A loop accepted into the graph (ids and input frame indices of both keyframes)."""
+
+    kf_old: int
+    kf_new: int
+    frame_old: int
+    frame_new: int
+    n_inliers: int
+
+
+class GlobalBackend:
+    """Implements :class:`metricslam.slam.types.Backend`.
+
+    Args:
+        config: graph, loop and threading parameters.
+        depth_source: metric inverse depth provider, or None for no learned scale.
+        loop_detector: a :class:`metricslam.slam.loop.LoopDetector` (or None: no loops).
+    """
+
+    def __init__(self, config: GraphConfig | None = None, depth_source: DepthSource | None = None,
+                 loop_detector: object | None = None) -> None:
+        self.config = config or GraphConfig()
+        self.depth_source = depth_source
+        self.loop_detector = loop_detector
+        self.graph = GlobalPoseGraph(self.config, anchor_scale=depth_source is None)
+        self.history = VoFrameHistory()
+        self._lock = threading.RLock()  # guards graph + records + correction state
+        self._cv = threading.Condition()
+        self._incoming: collections.deque = collections.deque()  # (kf, epoch)
+        self._depth_requests: collections.deque = collections.deque()
+        self._scale_results: collections.deque = collections.deque()  # (kf_id, scales)
+        self._pending_scales: dict[int, np.ndarray] = {}
+        self._records: dict[int, _KeyframeRecord] = {}
+        self._last_of_segment: dict[int, int] = {}
+        self._newest_kf: int | None = None
+        self._correction_ready = False
+        self._loops: list[LoopRecord] = []
+        self._busy = 0
+        self._stop = False
+        self._scale_factors_solved = 0
+        self._stats = collections.Counter()
+        self._solve_ms: list[float] = []
+        self._depth_ms: list[float] = []
+        self._loop_ms: list[float] = []
+        self._threads: list[threading.Thread] = []
+        if not self.config.inline:
+            self._threads.append(threading.Thread(target=self._graph_worker, name="graph", daemon=True))
+            if depth_source is not None:
+                self._threads.append(threading.Thread(target=self._depth_worker, name="depth", daemon=True))
+            for t in self._threads:
+                t.start()
+
+    # -- Backend protocol ---------------------------------------------------------------------
+    def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
+        """Record ``kf`` (in the VO frame of the current epoch). Never blocks on depth/solve."""
+        epoch = self.history.epoch
+        if self.config.inline:
+            with self._lock:
+                self._integrate(kf, epoch)
+                if self.depth_source is not None:
+                    res = self._measure_scale(kf.kf_id, kf.image, kf.camera, kf.landmarks_uv_px,
+                                              kf.landmarks_inv_depth)
+                    if res is not None:
+                        self._pending_scales[kf.kf_id] = res
+                self._flush_scales()
+                self._solve()
+            return
+        with self._cv:
+            self._incoming.append((kf, epoch))
+            if self.depth_source is not None:
+                if len(self._depth_requests) >= self.config.depth_queue_size:
+                    self._depth_requests.popleft()
+                    self._stats["depth_dropped"] += 1
+                self._depth_requests.append((kf.kf_id, kf.image, kf.camera, kf.landmarks_uv_px,
+                                             kf.landmarks_inv_depth))
+            self._cv.notify_all()
+
+    def take_correction(self) -> np.ndarray | None:
+        """``S_new_vo`` (4, 4) mapping the current VO frame onto the optimized metric world frame
+        (the newest solved keyframe lands on its graph pose), once per solve; else None.
+
+        The caller must apply it to the VO before it marginalizes the next keyframe: keyframes
+        received after this call are taken to be in the corrected frame.
+        """
+        with self._lock:
+            if not self._correction_ready or self._newest_kf is None:
+                return None
+            self._correction_ready = False
+            rec = self._records[self._newest_kf]
+            S_world_n = self.graph.estimate(rec.kf_id)
+            S_ve_n = self.history.C(self.history.epoch) @ rec.S_vo0_kf
+            S_new_vo = orthonormalize(S_world_n @ sim3.inverse(orthonormalize(S_ve_n)))
+            self.history.issue(S_new_vo)
+            self._stats["corrections"] += 1
+            return S_new_vo
+
+    def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
+        with self._lock:
+            est = self.graph.estimates()
+            return {self._records[k].frame_index: S for k, S in est.items()}
+
+    @property
+    def scale_established(self) -> bool:
+        if self.depth_source is None:
+            return False
+        return self._scale_factors_solved >= self.config.min_scale_factors_established
+
+    @property
+    def loops(self) -> list[LoopRecord]:
+        with self._lock:
+            return list(self._loops)
+
+    def wait_idle(self, timeout_s: float = 30.0) -> bool:
+        """Block until all queued keyframes and depth requests are processed (tests, close)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cv:
+            while self._incoming or self._depth_requests or self._scale_results or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0 or not any(t.is_alive() for t in self._threads):
+                    return False
+                self._cv.wait(min(left, 0.05))
+        return True
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Finish pending depth requests and solves (up to ``timeout_s``), then stop workers."""
+        if not self.config.inline:
+            if not self.wait_idle(timeout_s):
+                log.warning("global back end: pending work left at close after %.0f s", timeout_s)
+            with self._cv:
+                self._stop = True
+                self._cv.notify_all()
+            for t in self._threads:
+                t.join(timeout=5.0)
+        with self._lock:
+            try:
+                self.graph.solve(extra_iterations=max(self.config.extra_iterations, 5))
+            except GraphError as exc:
+                log.warning("final global solve failed: %s", exc)
+
+    def stats(self) -> dict:
+        """Counters and timings (ms) of the back end."""
+        def _mean(x: list[float]) -> float:
+            return float(np.mean(x)) if x else 0.0
+        with self._lock:
+            return {
+                "keyframes": self.graph.n_keyframes,
+                "scale_factors": self.graph.n_scale_factors,
+                "loops_accepted": len(self._loops),
+                "loops_rejected": self.graph.n_loops_rejected,
+                "loops": [(lp.frame_old, lp.frame_new) for lp in self._loops],
+                "depth_requests": self._stats["depth_requests"],
+                "depth_failures": self._stats["depth_failures"],
+                "depth_dropped": self._stats["depth_dropped"],
+                "corrections": self._stats["corrections"],
+                "depth_ms_mean": _mean(self._depth_ms),
+                "solve_ms_mean": _mean(self._solve_ms),
+                "solve_ms_max": float(max(self._solve_ms)) if self._solve_ms else 0.0,
+                "loop_ms_mean": _mean(self._loop_ms),
+                "scale_established": self.scale_established,
+            }
+
+    # -- work ---------------------------------------------------------------------------------
+    def _measure_scale(self, kf_id, image, camera, uv_px, inv_depth) -> np.ndarray | None:
+        """Depth request -> per-landmark scale measurements (None on failure)."""
+        from metricslam.depth.sample import sample_map
+
+        self._stats["depth_requests"] += 1
+        t0 = time.perf_counter()
+        try:
+            inv_map = self.depth_source.inv_depth_map(image, camera)
+            z = sample_map(inv_map, np.asarray(uv_px, dtype=float).reshape(-1, 2),
+                           (int(image.shape[1]), int(image.shape[0])))
+        except MetricSlamError as exc:  # DepthSourceError, ImageError: skip this keyframe
+            self._stats["depth_failures"] += 1
+            log.warning("no scale factors for keyframe %d: %s", kf_id, exc)
+            return None
+        except Exception as exc:  # a foreign source must never kill the worker
+            self._stats["depth_failures"] += 1
+            log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf_id, exc)
+            return None
+        self._depth_ms.append(1e3 * (time.perf_counter() - t0))
+        return scale_measurements(inv_depth, z, self.config)
+
+    def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
+        """Insert one keyframe (odometry or prior), then query loops. Caller holds the lock."""
+        S_vo0_kf = self.history.to_epoch0(kf.T_vo_kf, epoch)
+        rec = _KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, S_vo0_kf)
+        prev_id = self._last_of_segment.get(rec.segment_id)
+        if prev_id is not None:
+            S_prev_k = relative_sim3(self._records[prev_id].S_vo0_kf, S_vo0_kf)
+            guess = self.graph.estimate(prev_id) @ S_prev_k
+            info = odometry_information(S_prev_k, kf.information, self.config)
+            rec.step_length = max(float(np.linalg.norm(S_prev_k[:3, 3])), 1e-6)
+            self.graph.add_keyframe(rec.kf_id, guess, prev_id, S_prev_k, info)
+        elif self._newest_kf is None:
+            self.graph.add_keyframe(rec.kf_id, S_vo0_kf)
+        else:  # new tracking segment: loose prior near the last known pose until a loop links it
+            guess = self.graph.estimate(self._newest_kf)
+            self.graph.add_keyframe(rec.kf_id, guess,
+                                    prior_sigmas=np.array([0.3] * 3 + [10.0] * 3 + [1.0]))
+        self._records[rec.kf_id] = rec
+        self._last_of_segment[rec.segment_id] = rec.kf_id
+        self._newest_kf = rec.kf_id
+        if self.loop_detector is not None:
+            t0 = time.perf_counter()
+            try:
+                candidates = self.loop_detector.add_and_query(
+                    rec.kf_id, kf.image, kf.camera, kf.landmarks_uv_px, kf.landmarks_inv_depth)
+            except MetricSlamError as exc:
+                log.warning("loop detection failed on keyframe %d: %s", rec.kf_id, exc)
+                candidates = []
+            self._loop_ms.append(1e3 * (time.perf_counter() - t0))
+            for cand in candidates:
+                self._add_loop(cand)
+
+    def _add_loop(self, cand) -> None:
+        step = self._records[cand.kf_old].step_length
+        t_len = float(np.linalg.norm(cand.S_old_new[:3, 3]))
+        sig_t = max(self.config.loop_sigma_trans_rel * max(t_len, step), self.config.odom_sigma_trans_min)
+        sig = np.array([self.config.loop_sigma_rot_rad] * 3 + [sig_t] * 3
+                       + [self.config.loop_sigma_log_scale])
+        decision = self.graph.add_loop(cand.kf_old, cand.kf_new, cand.S_old_new, sig)
+        log.info("loop %d -> %d: %s (d2=%.1f, %d inliers)", cand.kf_old, cand.kf_new, decision.reason,
+                 decision.mahalanobis_sq, cand.n_inliers)
+        if decision.accepted:
+            self._loops.append(LoopRecord(cand.kf_old, cand.kf_new, self._records[cand.kf_old].frame_index,
+                                          self._records[cand.kf_new].frame_index, cand.n_inliers))
+
+    def _flush_scales(self) -> None:
+        for kf_id in [k for k in self._pending_scales if self.graph.has(k)]:
+            self.graph.add_scale_measurements(kf_id, self._pending_scales.pop(kf_id))
+
+    def _solve(self) -> None:
+        t0 = time.perf_counter()
+        n_before = self.graph.n_scale_factors
+        try:
+            res = self.graph.solve()
+        except GraphError as exc:
+            log.warning("global solve failed: %s", exc)
+            return
+        if res["loops_removed"]:
+            self._loops = [lp for lp in self._loops if self._loop_still_in_graph(lp)]
+        self._solve_ms.append(1e3 * (time.perf_counter() - t0))
+        self._scale_factors_solved = n_before
+        self._correction_ready = True
+
+    def _loop_still_in_graph(self, lp: LoopRecord) -> bool:
+        return any((v[0], v[1]) == (lp.kf_old, lp.kf_new) for v in self.graph._loop_indices.values())
+
+    # -- workers ------------------------------------------------------------------------------
+    def _depth_worker(self) -> None:
+        while True:
+            with self._cv:
+                while not self._depth_requests and not self._stop:
+                    self._cv.wait()
+                if self._stop and not self._depth_requests:
+                    return
+                req = self._depth_requests.popleft()
+                self._busy += 1
+            res = None
+            try:
+                res = self._measure_scale(*req)
+            finally:
+                with self._cv:
+                    if res is not None:
+                        self._scale_results.append((req[0], res))
+                    self._busy -= 1
+                    self._cv.notify_all()
+
+    def _graph_worker(self) -> None:
+        while True:
+            with self._cv:
+                while not self._incoming and not self._scale_results and not self._stop:
+                    self._cv.wait()
+                if self._stop and not self._incoming and not self._scale_results:
+                    return
+                incoming = list(self._incoming)
+                self._incoming.clear()
+                results = list(self._scale_results)
+                self._scale_results.clear()
+                self._busy += 1
+            try:
+                with self._lock:
+                    for kf, epoch in incoming:
+                        self._integrate(kf, epoch)
+                    for kf_id, scales in results:
+                        self._pending_scales[kf_id] = scales
+                    self._flush_scales()
+                    self._solve()
+            except Exception:  # never let the worker die silently; the pipeline keeps tracking
+                log.exception("global graph worker failed on a batch; continuing")
+            finally:
+                with self._cv:
+                    self._busy -= 1
+                    self._cv.notify_all()

@@ -1,0 +1,96 @@
+"""Frozen algorithm configuration of the global pose graph, loop closure and scale factors.
+
+Sigmas are standard deviations in the Sim(3) tangent ``[ω (rad), u (keyframe units), λ = log s]``.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class LoopConfig(BaseModel):
+    """Place recognition + geometric verification parameters (see :mod:`metricslam.slam.loop`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = True
+    n_orb_features: int = Field(default=600, gt=0)
+    vocabulary_words: int = Field(default=400, gt=8)
+    vocabulary_train_keyframes: int = Field(default=12, gt=0)
+    skip_recent_keyframes: int = Field(default=30, ge=1)
+    min_score_ratio: float = Field(default=0.6, gt=0)
+    n_candidates: int = Field(default=3, gt=0)
+    min_matches: int = Field(default=25, gt=3)
+    min_inliers: int = Field(default=18, gt=3)
+    min_inlier_ratio: float = Field(default=0.45, gt=0, le=1)
+    ransac_iterations: int = Field(default=200, gt=0)
+    reprojection_threshold_px: float = Field(default=3.0, gt=0)
+    hamming_ratio: float = Field(default=0.8, gt=0, le=1)
+    min_keyframes_between_loops: int = Field(default=5, ge=0)
+
+
+class GraphConfig(BaseModel):
+    """Global Sim(3) graph parameters (paper eq. 13).
+
+    Attributes:
+        odom_sigma_rot_rad: odometry rotation sigma per keyframe step.
+        odom_sigma_trans_rel: odometry translation sigma as a fraction of the step length.
+        odom_sigma_trans_min: floor of the translation sigma (keyframe units).
+        odom_sigma_log_scale: odometry log-scale sigma per step (monocular scale drift).
+        scale_sigma_log: sigma of one landmark's log-scale measurement ``log(ξ_j / z_j)``.
+        scale_huber_k: Huber threshold ε_s on the whitened scale residual.
+        max_scale_landmarks: at most this many landmarks per keyframe give scale factors
+            (the strongest-parallax ones are not known here, so an even subsample).
+        min_inv_depth_per_m / max_inv_depth_per_m: network inverse depths outside are unusable.
+        loop_sigma_rot_rad / loop_sigma_trans_rel / loop_sigma_log_scale: loop factor sigmas.
+        loop_kernel: robust kernel on loop factors ("dcs", "cauchy", "huber").
+        loop_kernel_param: its parameter (whitened units).
+        loop_reject_chi2: after a solve, a loop whose whitened squared error exceeds this is
+            removed as a false loop.
+        relinearize_threshold / relinearize_skip: ISAM2 relinearization controls.
+        extra_iterations: extra ISAM2 updates after a loop or a batch of scale factors.
+        depth_queue_size: bounded depth-request queue; when full the OLDEST request is dropped.
+        min_scale_factors_established: scale factors needed before ``scale_established``.
+        inline: run depth and solve inside ``on_keyframe_marginalized`` (deterministic, for
+            tests and offline benchmarks); False runs them in worker threads.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    odom_sigma_rot_rad: float = Field(default=0.005, gt=0)
+    odom_sigma_trans_rel: float = Field(default=0.05, gt=0)
+    odom_sigma_trans_min: float = Field(default=1e-3, gt=0)
+    odom_sigma_log_scale: float = Field(default=0.03, gt=0)
+    use_vo_information: bool = False
+    scale_sigma_log: float = Field(default=0.15, gt=0)
+    scale_huber_k: float = Field(default=1.345, gt=0)
+    max_scale_landmarks: int = Field(default=48, gt=0)
+    min_inv_depth_per_m: float = Field(default=1.0 / 80.0, gt=0)
+    max_inv_depth_per_m: float = Field(default=1.0 / 1.5, gt=0)
+    loop_sigma_rot_rad: float = Field(default=0.01, gt=0)
+    loop_sigma_trans_rel: float = Field(default=0.05, gt=0)
+    loop_sigma_log_scale: float = Field(default=0.05, gt=0)
+    loop_kernel: str = Field(default="dcs", pattern="^(dcs|cauchy|huber)$")
+    loop_kernel_param: float = Field(default=1.0, gt=0)
+    loop_reject_chi2: float = Field(default=50.0, gt=0)
+    relinearize_threshold: float = Field(default=0.01, gt=0)
+    relinearize_skip: int = Field(default=1, ge=1)
+    extra_iterations: int = Field(default=2, ge=0)
+    depth_queue_size: int = Field(default=4, ge=1)
+    min_scale_factors_established: int = Field(default=10, ge=1)
+    inline: bool = False
+    loop: LoopConfig = LoopConfig()
+
+    @classmethod
+    def preset(cls, name: str) -> "GraphConfig":
+        """Per-dataset presets: ``"kitti"`` (car, 10 Hz), ``"synthetic"``, ``"default"``."""
+        from metricslam.errors import ConfigError
+
+        presets = {
+            "default": {},
+            "kitti": {"odom_sigma_log_scale": 0.03, "scale_sigma_log": 0.15},
+            "synthetic": {"odom_sigma_log_scale": 0.03, "scale_sigma_log": 0.1},
+        }
+        if name not in presets:
+            raise ConfigError(f"unknown graph preset {name!r}; choose one of {sorted(presets)}")
+        return cls(**presets[name])

@@ -1,0 +1,280 @@
+"""``GlobalPoseGraph``: Sim(3) keyframe poses ``S_world_kf`` solved incrementally with ISAM2.
+
+Variables are ``gtsam.Similarity3`` keyed ``symbol('s', kf_id)``; ``S_world_kf``'s scale maps the
+keyframe's own VO units to metres. Factors: ``BetweenFactorSimilarity3`` odometry (eq. 11), the
+same form for loops (robust kernel, Mahalanobis gate against the current marginals, removed again
+if still inconsistent after the solve), and unary log-scale priors (eq. 12, see
+:mod:`metricslam.slam.graph.scale_factor`). ISAM2 keeps each solve's cost bounded as the graph
+grows: only the cliques touched by new factors are re-eliminated (a loop touches the path back
+to its older end). Gauge: the first keyframe gets a prior on rotation and translation; with
+``anchor_scale=True`` (no learned scale, the ``--no-scale`` ablation) it also fixes the scale.
+Not thread-safe: :class:`metricslam.slam.graph.backend.GlobalBackend` serializes access.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from metricslam.errors import GraphError
+from metricslam.slam.graph import scale_factor
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
+
+log = logging.getLogger(__name__)
+
+#: chi-square gate (7 dof) on a loop's innovation against the predicted relative-pose covariance.
+LOOP_GATE_CHI2 = 200.0
+
+
+@dataclass(frozen=True)
+class LoopDecision:
+    """Outcome of :meth:`GlobalPoseGraph.add_loop`."""
+
+    accepted: bool
+    kf_old: int
+    kf_new: int
+    mahalanobis_sq: float
+    reason: str
+
+
+class GlobalPoseGraph:
+    """Incremental Sim(3) pose graph.
+
+    Args:
+        config: graph parameters.
+        anchor_scale: fix the first keyframe's scale too (7-D gauge); use when no scale factors
+            will be added.
+    """
+
+    def __init__(self, config: GraphConfig | None = None, anchor_scale: bool = False) -> None:
+        self.config = config or GraphConfig()
+        self.anchor_scale = anchor_scale
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = self.config.relinearize_skip
+        self._isam = gtsam.ISAM2(params)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._pending_kinds: list[str] = []
+        self._factor_kinds: dict[int, str] = {}  # isam factor index -> kind
+        self._loop_indices: dict[int, tuple] = {}  # isam index -> (old, new, sigmas, measured)
+        self._keyframes: list[int] = []
+        self._latest: dict[int, gtsam.Similarity3] = {}  # best known estimate per keyframe
+        self._scale_noise = scale_factor.scale_noise(self.config)
+        self.n_scale_factors = 0
+        self.n_loops_accepted = 0
+        self.n_loops_rejected = 0
+
+    # -- construction -------------------------------------------------------------------------
+    def has(self, kf_id: int) -> bool:
+        return int(kf_id) in self._latest
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        return list(self._keyframes)
+
+    def add_keyframe(
+        self,
+        kf_id: int,
+        S_world_kf_guess: np.ndarray,
+        prev_kf_id: int | None = None,
+        S_prev_kf: np.ndarray | None = None,
+        information: np.ndarray | None = None,
+        prior_sigmas: np.ndarray | None = None,
+    ) -> None:
+        """Insert a keyframe variable with its odometry factor to ``prev_kf_id`` (or a prior).
+
+        Args:
+            kf_id: new keyframe id (unique).
+            S_world_kf_guess: (4, 4) initial estimate.
+            prev_kf_id / S_prev_kf: odometry ``Ŝ_prev_kf`` (4, 4) and its 7x7 ``information``.
+            prior_sigmas: (7,) sigmas of a prior at the guess, for a keyframe without odometry
+                (the very first one gets the gauge prior automatically).
+        """
+        kf_id = int(kf_id)
+        if self.has(kf_id):
+            raise GraphError(f"keyframe {kf_id} is already in the global graph; ids must be unique")
+        S_guess = to_gtsam(S_world_kf_guess)
+        self._new_values.insert(key(kf_id), S_guess)
+        self._latest[kf_id] = S_guess
+        first = not self._keyframes
+        self._keyframes.append(kf_id)
+        if first:
+            free = scale_factor.FREE_SIGMA if not self.anchor_scale else 1e-6
+            sig = np.array([1e-6] * 6 + [min(free, 10.0)])
+            self._add(gtsam.PriorFactorSimilarity3(key(kf_id), S_guess,
+                                                   gtsam.noiseModel.Diagonal.Sigmas(sig)), "anchor")
+        elif prior_sigmas is not None:
+            self._add(gtsam.PriorFactorSimilarity3(
+                key(kf_id), S_guess, gtsam.noiseModel.Diagonal.Sigmas(np.asarray(prior_sigmas, float))),
+                "segment_prior")
+        if prev_kf_id is not None:
+            if not self.has(prev_kf_id) or S_prev_kf is None or information is None:
+                raise GraphError(f"odometry to keyframe {prev_kf_id} needs a known keyframe, a "
+                                 "measurement and its information")
+            noise = gtsam.noiseModel.Gaussian.Information(np.asarray(information, dtype=float))
+            self._add(gtsam.BetweenFactorSimilarity3(key(prev_kf_id), key(kf_id),
+                                                     to_gtsam(S_prev_kf), noise), "odometry")
+
+    def add_scale_measurements(self, kf_id: int, scales: np.ndarray) -> int:
+        """Add one Huber log-scale factor per measurement ``s_j`` on keyframe ``kf_id``."""
+        if not self.has(kf_id):
+            raise GraphError(f"scale factors for unknown keyframe {kf_id}; add the keyframe first")
+        s = np.asarray(scales, dtype=float).reshape(-1)
+        s = s[np.isfinite(s) & (s > 0)]
+        for f in scale_factor.make_scale_factors(key(kf_id), self._latest[int(kf_id)], s,
+                                                 self._scale_noise):
+            self._add(f, "scale")
+        self.n_scale_factors += int(s.size)
+        return int(s.size)
+
+    def add_loop(self, kf_old: int, kf_new: int, S_old_new: np.ndarray, sigmas: np.ndarray,
+                 gate: bool = True) -> LoopDecision:
+        """Add a loop factor ``Ŝ_old_new`` if it passes the Mahalanobis gate.
+
+        The innovation ``Log(Ŝ⁻¹ · S_old⁻¹ S_new)`` is tested against the loop noise plus the
+        relative-pose covariance from ISAM2's joint marginal (chi² ≤ ``LOOP_GATE_CHI2``): a false
+        loop between places the graph knows are far apart is refused before it can pull.
+        """
+        for k in (kf_old, kf_new):
+            if not self.has(k):
+                raise GraphError(f"loop references unknown keyframe {k}")
+        sigmas = np.asarray(sigmas, dtype=float)
+        meas = to_gtsam(S_old_new)
+        d2 = self._loop_mahalanobis_sq(kf_old, kf_new, meas, sigmas) if gate else 0.0
+        if gate and not (np.isfinite(d2) and d2 <= LOOP_GATE_CHI2):
+            self.n_loops_rejected += 1
+            return LoopDecision(False, kf_old, kf_new, d2, "inconsistent with the graph (gate)")
+        base = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        k = self.config.loop_kernel_param
+        est = {"dcs": gtsam.noiseModel.mEstimator.DCS, "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+               "huber": gtsam.noiseModel.mEstimator.Huber}[self.config.loop_kernel].Create(k)
+        noise = gtsam.noiseModel.Robust.Create(est, base)
+        self._add(gtsam.BetweenFactorSimilarity3(key(kf_old), key(kf_new), meas, noise),
+                  ("loop", int(kf_old), int(kf_new), sigmas, meas))
+        self.n_loops_accepted += 1
+        return LoopDecision(True, kf_old, kf_new, d2, "accepted")
+
+    def _loop_mahalanobis_sq(self, kf_old: int, kf_new: int, meas: gtsam.Similarity3,
+                             sigmas: np.ndarray) -> float:
+        S_old, S_new = self._latest[int(kf_old)], self._latest[int(kf_new)]
+        rel = S_old.between(S_new)
+        innov = gtsam.Similarity3.Logmap(meas.inverse().compose(rel))
+        cov = np.diag(sigmas**2)
+        if self._isam.valueExists(key(kf_old)) and self._isam.valueExists(key(kf_new)):
+            kl = gtsam.KeyVector([key(kf_old), key(kf_new)])
+            try:
+                joint = self._isam.jointMarginalCovariance(kl).fullMatrix()
+                J = np.hstack([-rel.inverse().AdjointMap(), np.eye(7)])
+                cov = cov + J @ joint @ J.T
+            except RuntimeError as exc:  # indeterminate system: fall back to the loop noise
+                log.debug("joint marginal failed: %s", exc)
+        try:
+            return float(innov @ np.linalg.solve(cov, innov))
+        except np.linalg.LinAlgError:
+            return float("inf")
+
+    def _add(self, factor: gtsam.NonlinearFactor, kind: object) -> None:
+        self._new_factors.add(factor)
+        self._pending_kinds.append(kind)
+
+    # -- solving ------------------------------------------------------------------------------
+    def solve(self, extra_iterations: int | None = None) -> dict:
+        """Push pending factors into ISAM2 and iterate; re-check new loops afterwards.
+
+        Returns:
+            ``{"loops_removed": n, "iterations": n}``.
+        """
+        extra = self.config.extra_iterations if extra_iterations is None else extra_iterations
+        kinds = self._pending_kinds
+        has_loop = any(isinstance(k, tuple) for k in kinds)
+        try:
+            result = self._isam.update(self._new_factors, self._new_values)
+        except RuntimeError as exc:
+            raise GraphError(f"ISAM2 update failed ({exc}); the graph is probably unconstrained") from exc
+        new_idx = list(result.getNewFactorsIndices())
+        for idx, kind in zip(new_idx, kinds):
+            self._factor_kinds[idx] = kind
+            if isinstance(kind, tuple):
+                self._loop_indices[idx] = kind[1:]
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._pending_kinds = []
+        n_iter = 1 + (max(extra, 8) if has_loop else extra)
+        for _ in range(n_iter - 1):
+            self._isam.update()
+        removed = self._reject_inconsistent_loops() if has_loop else 0
+        self._refresh_latest(all_keys=has_loop or removed > 0)
+        return {"loops_removed": removed, "iterations": n_iter}
+
+    def _reject_inconsistent_loops(self) -> int:
+        est = self._isam.calculateEstimate()
+        bad = []
+        for idx, (a, b, sig, meas) in self._loop_indices.items():
+            rel = est.atSimilarity3(key(a)).between(est.atSimilarity3(key(b)))
+            r = gtsam.Similarity3.Logmap(meas.inverse().compose(rel)) / sig
+            if float(r @ r) > self.config.loop_reject_chi2:
+                bad.append(idx)
+        if bad:
+            log.info("removing %d loop factor(s) inconsistent after the solve", len(bad))
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), bad)
+            for _ in range(max(self.config.extra_iterations, 8)):
+                self._isam.update()
+            for idx in bad:
+                self._loop_indices.pop(idx, None)
+            self.n_loops_accepted -= len(bad)
+            self.n_loops_rejected += len(bad)
+        return len(bad)
+
+    def _refresh_latest(self, all_keys: bool) -> None:
+        if all_keys:
+            est = self._isam.calculateEstimate()
+            for kf in self._keyframes:
+                self._latest[kf] = est.atSimilarity3(key(kf))
+        else:  # bounded cost: refresh only the newest keyframes
+            for kf in self._keyframes[-8:]:
+                self._latest[kf] = self._isam.calculateEstimateSimilarity3(key(kf))
+
+    # -- queries ------------------------------------------------------------------------------
+    def estimate(self, kf_id: int) -> np.ndarray:
+        """Latest ``S_world_kf`` (4, 4) of one keyframe."""
+        if not self.has(kf_id):
+            raise GraphError(f"keyframe {kf_id} is not in the global graph")
+        if self._isam.valueExists(key(kf_id)):
+            return from_gtsam(self._isam.calculateEstimateSimilarity3(key(kf_id)))
+        return from_gtsam(self._latest[int(kf_id)])
+
+    def estimates(self) -> dict[int, np.ndarray]:
+        """``kf_id -> S_world_kf`` (4, 4) for every keyframe (full back-substitution, O(n))."""
+        est = self._isam.calculateEstimate() if self._isam.size() else gtsam.Values()
+        out = {}
+        for kf in self._keyframes:
+            S = est.atSimilarity3(key(kf)) if est.exists(key(kf)) else self._latest[kf]
+            out[kf] = from_gtsam(S)
+        return out
+
+    def factor_graph(self, include_anchor: bool = True) -> gtsam.NonlinearFactorGraph:
+        """All factors currently in ISAM2 (optionally without the gauge anchor), for analysis."""
+        g = gtsam.NonlinearFactorGraph()
+        factors = self._isam.getFactorsUnsafe()
+        for i in range(factors.size()):
+            f = factors.at(i)
+            if f is None or (not include_anchor and self._factor_kinds.get(i) == "anchor"):
+                continue
+            g.add(f)
+        return g
+
+    def values(self) -> gtsam.Values:
+        return self._isam.calculateEstimate()
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    @property
+    def n_loops(self) -> int:
+        return self.n_loops_accepted
