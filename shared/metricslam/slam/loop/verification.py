@@ -1,0 +1,107 @@
+"""Geometric verification of a loop candidate and its relative Sim(3).
+
+Each keyframe carries ORB descriptors computed *at its VO landmarks* (pixels with known
+inverse depth ξ in the keyframe's own units), so a descriptor match is a 3-D–3-D
+correspondence between the two keyframes. RANSAC over minimal 3-point Umeyama fits finds
+``S_old_new`` (new keyframe's units/frame -> old keyframe's), with inliers decided by the
+reprojection error in *both* images; the final estimate is Umeyama on all inliers. Works
+without learned depth, so the ``--no-scale`` ablation closes loops too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.errors import AlignmentError
+from metricslam.geometry import sim3
+from metricslam.geometry.align import umeyama
+from metricslam.slam.graph.config import LoopConfig
+
+
+@dataclass(frozen=True)
+class LandmarkFeatures:
+    """ORB descriptors at a keyframe's landmarks and their 3-D points (keyframe units)."""
+
+    uv_px: np.ndarray  # (K, 2)
+    points: np.ndarray  # (K, 3) in the keyframe camera frame, keyframe units
+    descriptors: np.ndarray  # (K, 32) uint8
+
+
+def landmark_features(orb: cv2.ORB, image_gray: np.ndarray, camera: PinholeCamera,
+                      uv_px: np.ndarray, inv_depth: np.ndarray) -> LandmarkFeatures:
+    """Describe landmarks (M, 2) with ORB (upright, 31 px patch); drops border/invalid ones."""
+    uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+    xi = np.asarray(inv_depth, dtype=float).reshape(-1)
+    ok = np.isfinite(uv).all(axis=1) & np.isfinite(xi) & (xi > 0)
+    idx = np.flatnonzero(ok)
+    kps = [cv2.KeyPoint(float(uv[i, 0]), float(uv[i, 1]), 31.0, 0.0, 0.0, 0, int(i)) for i in idx]
+    kps, desc = orb.compute(image_gray, kps)
+    if desc is None or not kps:
+        return LandmarkFeatures(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+    keep = np.array([kp.class_id for kp in kps], dtype=int)
+    pts = camera.unproject(uv[keep], 1.0 / xi[keep])
+    return LandmarkFeatures(uv[keep], pts, desc)
+
+
+@dataclass(frozen=True)
+class VerifiedLoop:
+    S_old_new: np.ndarray
+    n_matches: int
+    n_inliers: int
+
+
+def _match(d_new: np.ndarray, d_old: np.ndarray, ratio: float) -> np.ndarray:
+    if len(d_new) < 2 or len(d_old) < 2:
+        return np.zeros((0, 2), dtype=int)
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d_new, d_old, k=2)
+    pairs = [(m.queryIdx, m.trainIdx) for m, n in (p for p in knn if len(p) == 2)
+             if m.distance < ratio * n.distance and m.distance < 64]
+    if not pairs:
+        return np.zeros((0, 2), dtype=int)
+    pairs = np.array(pairs, dtype=int)
+    _, first = np.unique(pairs[:, 1], return_index=True)  # one-to-one on the old side
+    return pairs[np.sort(first)]
+
+
+def _two_way_errors(S_old_new, p_new, p_old, uv_new, uv_old, camera) -> np.ndarray:
+    q_old = sim3.transform_points(S_old_new, p_new)
+    q_new = sim3.transform_points(sim3.inverse(S_old_new), p_old)
+    e1 = np.linalg.norm(camera.project(q_old) - uv_old, axis=1)
+    e2 = np.linalg.norm(camera.project(q_new) - uv_new, axis=1)
+    e = np.maximum(e1, e2)
+    return np.where(np.isfinite(e), e, np.inf)
+
+
+def verify(new: LandmarkFeatures, old: LandmarkFeatures, camera: PinholeCamera, config: LoopConfig,
+           rng: np.random.Generator) -> VerifiedLoop | None:
+    """RANSAC Sim(3) between two keyframes' landmarks, or None when it does not verify."""
+    pairs = _match(new.descriptors, old.descriptors, config.hamming_ratio)
+    if len(pairs) < config.min_matches:
+        return None
+    p_new, p_old = new.points[pairs[:, 0]], old.points[pairs[:, 1]]
+    uv_new, uv_old = new.uv_px[pairs[:, 0]], old.uv_px[pairs[:, 1]]
+    best = np.zeros(len(pairs), dtype=bool)
+    for _ in range(config.ransac_iterations):
+        sample = rng.choice(len(pairs), size=3, replace=False)
+        try:
+            S = umeyama(p_new[sample], p_old[sample], with_scale=True)
+        except AlignmentError:
+            continue
+        inl = _two_way_errors(S, p_new, p_old, uv_new, uv_old, camera) < config.reprojection_threshold_px
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < max(config.min_inliers, 3):
+        return None
+    try:
+        S = umeyama(p_new[best], p_old[best], with_scale=True)
+    except AlignmentError:
+        return None
+    inl = _two_way_errors(S, p_new, p_old, uv_new, uv_old, camera) < config.reprojection_threshold_px
+    n_inl = int(inl.sum())
+    if n_inl < config.min_inliers or n_inl < config.min_inlier_ratio * len(pairs):
+        return None
+    return VerifiedLoop(S, int(len(pairs)), n_inl)
