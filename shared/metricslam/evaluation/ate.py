@@ -8,7 +8,9 @@ Three flavours, all over the positions of ``T_world_cam`` (N, 4, 4), metres:
 * Sim(3)-aligned — Umeyama with scale; its scale ``s`` (applied to the estimate) gives
   ``scale_ratio = 1 / s`` = estimate size / true size.
 
-Same definitions as evo's APE on the translation part. See ``docs/conventions.md``.
+Same definitions as evo's APE on the translation part. When the ground truth is degenerate for
+alignment (a straight line, or standing still) the aligned numbers are None and ``note`` says
+why; the unaligned RMSE is always given. See ``docs/conventions.md``.
 """
 
 from __future__ import annotations
@@ -35,16 +37,17 @@ class AteResult:
     """
 
     rmse_unaligned_m: float
-    rmse_se3_m: float
-    rmse_sim3_m: float
-    S_gt_est: np.ndarray
-    scale_ratio: float
-    err_se3_m: np.ndarray
+    rmse_se3_m: float | None
+    rmse_sim3_m: float | None
+    S_gt_est: np.ndarray | None
+    scale_ratio: float | None
+    err_se3_m: np.ndarray | None
+    note: str | None = None
 
     @property
-    def scale_error_pct(self) -> float:
-        """``100·|scale_ratio − 1|``."""
-        return 100.0 * abs(self.scale_ratio - 1.0)
+    def scale_error_pct(self) -> float | None:
+        """``100·|scale_ratio − 1|`` (None without an alignment)."""
+        return None if self.scale_ratio is None else 100.0 * abs(self.scale_ratio - 1.0)
 
 
 def rmse(err: np.ndarray) -> float:
@@ -61,21 +64,22 @@ def absolute_trajectory_error(T_world_cam_gt: np.ndarray, T_world_cam_est: np.nd
     """ATE unaligned / SE(3) / Sim(3) of frame-aligned trajectories (N, 4, 4).
 
     Raises:
-        EvaluationError: shapes differ, or the ground truth does not move in two directions so
-            no alignment is defined.
+        EvaluationError: the shapes differ.
     """
     gt = np.asarray(T_world_cam_gt, dtype=float)
     est = np.asarray(T_world_cam_est, dtype=float)
     if gt.shape != est.shape:
         raise EvaluationError(f"trajectories differ in shape: gt {gt.shape}, estimate {est.shape}")
+    unaligned = rmse(position_errors(gt, est))
     try:
         _, est_se3 = align.align_trajectory(est, gt, with_scale=False)
         S_gt_est, est_sim3 = align.align_trajectory(est, gt, with_scale=True)
     except AlignmentError as exc:
-        raise EvaluationError(f"cannot align the estimate to the ground truth: {exc}") from exc
+        note = f"aligned ATE and scale ratio are undefined (null): {exc}"
+        return AteResult(unaligned, None, None, None, None, None, note)
     err_se3 = position_errors(gt, est_se3)
     return AteResult(
-        rmse_unaligned_m=rmse(position_errors(gt, est)),
+        rmse_unaligned_m=unaligned,
         rmse_se3_m=rmse(err_se3),
         rmse_sim3_m=rmse(position_errors(gt, est_sim3)),
         S_gt_est=S_gt_est,

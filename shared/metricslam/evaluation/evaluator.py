@@ -71,6 +71,8 @@ def evaluate_poses(
     if len(seg) == 0:
         notes.append("no 10 m segment fits either: t_rel/r_rel are undefined (null)")
     ate = absolute_trajectory_error(gt, est)
+    if ate.note:
+        notes.append(ate.note)
     rpe = relative_pose_error(gt, est, rpe_delta_frames)
     by_len = {f"{L:g}": [t, r, float(n)] for L, (t, r, n) in seg.by_length().items()}
     result = EvalResult(

@@ -35,14 +35,17 @@ def save_plot(evaluations: list, out_path: str | Path) -> Path:
     names = "xyz"
     for row, ev in zip(axes, evaluations):
         gt, est = ev.T_world_cam_gt, ev.T_world_cam_est
-        _, est_se3 = align.align_trajectory(est, gt, with_scale=False)
-        est_sim3 = align.apply_to_poses(ev.ate.S_gt_est, est)
         a, b = top_view_axes(gt[:, :3, 3])
         ax = row[0]
         ax.plot(gt[:, a, 3], gt[:, b, 3], "k-", lw=1.5, label="ground truth")
-        ax.plot(est_se3[:, a, 3], est_se3[:, b, 3], "r-", lw=1.0, label="estimate (SE(3)-aligned)")
-        ax.plot(est_sim3[:, a, 3], est_sim3[:, b, 3], "b--", lw=0.8,
-                label=f"estimate (Sim(3), scale ratio {ev.result.scale_ratio:.3f})")
+        if ev.ate.S_gt_est is not None:
+            _, est_se3 = align.align_trajectory(est, gt, with_scale=False)
+            est_sim3 = align.apply_to_poses(ev.ate.S_gt_est, est)
+            ax.plot(est_se3[:, a, 3], est_se3[:, b, 3], "r-", lw=1.0, label="estimate (SE(3)-aligned)")
+            ax.plot(est_sim3[:, a, 3], est_sim3[:, b, 3], "b--", lw=0.8,
+                    label=f"estimate (Sim(3), scale ratio {ev.result.scale_ratio:.3f})")
+        else:
+            ax.plot(est[:, a, 3], est[:, b, 3], "r-", lw=1.0, label="estimate (not aligned)")
         ax.plot(gt[0, a, 3], gt[0, b, 3], "ks", ms=6, label="start")
         ax.set_xlabel(f"{names[a]} [m]")
         ax.set_ylabel(f"{names[b]} [m]")

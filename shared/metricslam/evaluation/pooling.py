@@ -17,9 +17,21 @@ from metricslam.evaluation.kitti_metric import SegmentErrors
 from metricslam.evaluation.result import EvalReport, EvalResult
 
 
-def _rms_weighted(values: list[float], weights: list[int]) -> float:
-    v, w = np.asarray(values, dtype=float), np.asarray(weights, dtype=float)
+def _rms_weighted(values: list[float | None], weights: list[int]) -> float | None:
+    """Weighted RMS of per-sequence RMSEs (= RMSE over all their samples), skipping None."""
+    pairs = [(v, w) for v, w in zip(values, weights) if v is not None]
+    if not pairs:
+        return None
+    v, w = (np.asarray(x, dtype=float) for x in zip(*pairs))
     return float(np.sqrt(np.sum(w * v**2) / np.sum(w)))
+
+
+def _average(values: list[float | None], weights: list[int]) -> float | None:
+    pairs = [(v, w) for v, w in zip(values, weights) if v is not None]
+    if not pairs:
+        return None
+    v, w = zip(*pairs)
+    return float(np.average(v, weights=w))
 
 
 def _mean_or_none(values: list[float | None]) -> float | None:
@@ -35,7 +47,6 @@ def pooled_result(evaluations: list) -> EvalResult:
     seg = SegmentErrors.concatenate([e.segments for e in evaluations])
     n = [r.n_frames for r in res]
     n_pairs = [e.rpe.n_pairs for e in evaluations]
-    ratio = float(np.average([r.scale_ratio for r in res], weights=n))
     t_rel = seg.t_rel_pct
     notes = [f"{r.name}: {note}" for r in res for note in r.notes]
     return EvalResult(
@@ -44,8 +55,8 @@ def pooled_result(evaluations: list) -> EvalResult:
         r_rel_deg_per_100m=None if not math.isfinite(t_rel) else seg.r_rel_deg_per_100m,
         ate_rmse_m=_rms_weighted([r.ate_rmse_m for r in res], n),
         ate_rmse_sim3_m=_rms_weighted([r.ate_rmse_sim3_m for r in res], n),
-        scale_ratio=ratio,
-        scale_error_pct=float(np.average([r.scale_error_pct for r in res], weights=n)),
+        scale_ratio=_average([r.scale_ratio for r in res], n),
+        scale_error_pct=_average([r.scale_error_pct for r in res], n),
         n_frames=int(sum(n)),
         path_length_m=float(sum(r.path_length_m for r in res)),
         t_rel_lengths_m=seg.used_lengths_m,
@@ -65,7 +76,7 @@ def mean_result(evaluations: list) -> EvalResult:
     if not evaluations:
         raise EvaluationError("nothing to average: no sequences were evaluated")
     res = [e.result for e in evaluations]
-    mean = lambda key: float(np.mean([getattr(r, key) for r in res]))  # noqa: E731
+    mean = lambda key: _mean_or_none([getattr(r, key) for r in res])  # noqa: E731
     return EvalResult(
         name="mean of sequences",
         t_rel_pct=_mean_or_none([r.t_rel_pct for r in res]),

@@ -5,7 +5,8 @@ Contract keys (lower is better unless said): ``t_rel_pct``, ``r_rel_deg_per_100m
 ``ate_rmse_m`` (SE(3)-aligned), ``ate_rmse_sim3_m``, ``scale_ratio`` (estimate size / true
 size, 1.0 is metric), ``scale_error_pct`` (``100·|scale_ratio − 1|``), ``n_frames``,
 ``path_length_m``, ``t_rel_lengths_m`` (segment lengths actually used). A metric that cannot
-be computed (no segment fits) is ``null`` and ``notes`` says why.
+be computed (no segment fits; a straight-line ground truth cannot be aligned) is ``null`` and
+``notes`` says why.
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ class EvalResult(BaseModel):
     name: str = Field(description="sequence name, or 'pooled' / 'mean of sequences'")
     t_rel_pct: float | None = Field(description="KITTI devkit translational error, percent")
     r_rel_deg_per_100m: float | None = Field(description="KITTI devkit rotational error, deg/100 m")
-    ate_rmse_m: float = Field(description="ATE RMSE after SE(3) alignment, metres")
-    ate_rmse_sim3_m: float = Field(description="ATE RMSE after Sim(3) alignment, metres")
-    scale_ratio: float = Field(description="estimate size / true size from the Sim(3) alignment")
-    scale_error_pct: float = Field(description="100·|scale_ratio − 1|")
+    ate_rmse_m: float | None = Field(description="ATE RMSE after SE(3) alignment, metres")
+    ate_rmse_sim3_m: float | None = Field(description="ATE RMSE after Sim(3) alignment, metres")
+    scale_ratio: float | None = Field(description="estimate size / true size from the Sim(3) alignment")
+    scale_error_pct: float | None = Field(description="100·|scale_ratio − 1|")
     n_frames: int = Field(description="number of evaluated (associated) frames")
     path_length_m: float = Field(description="ground-truth path length, metres")
     t_rel_lengths_m: list[float] = Field(description="segment lengths used for t_rel/r_rel")
