@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "train": "metricslam.cli.train_cmd",
     "export": "metricslam.cli.export_cmd",
     "eval": "metricslam.cli.eval_cmd",
+    "synth": "metricslam.cli.synth_cmd",
     "depth-service": "metricslam.cli.depth_service_cmd",
 }
 
