@@ -74,7 +74,11 @@ def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tens
     dx, dy = (d[..., :, 1:] - d[..., :, :-1]).abs(), (d[..., 1:, :] - d[..., :-1, :]).abs()
     ix = (image[..., :, 1:] - image[..., :, :-1]).abs()
     iy = (image[..., 1:, :] - image[..., :-1, :]).abs()
-    return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
+    total = disp.new_zeros(())
+    for grad_d, grad_i in ((dx, ix), (dy, iy)):
+        if grad_d.numel():  # a 1-pixel-high/wide map has no gradient in that direction
+            total = total + (grad_d * torch.exp(-grad_i)).mean()
+    return total
 
 
 def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float) -> torch.Tensor:

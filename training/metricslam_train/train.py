@@ -133,6 +133,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             log_file.write(json.dumps(record) + "\n")
             bar.update(1)
             bar.set_postfix(loss=f"{record['loss']:.3f}", photo=f"{terms['photo']:.3f}", sup=f"{terms['sup']:.3f}")
+            if step % 20 == 0:
+                log_file.flush()
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 log_file.flush()
                 save(last)

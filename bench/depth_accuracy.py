@@ -1,0 +1,164 @@
+"""Metric accuracy of the depth network (onnxruntime), against honest references.
+
+1. ``kitti_raw_lidar`` (never trained on): projected LiDAR depth of the left colour camera.
+2. A KITTI odometry stereo sequence held out of training (default 06): SGBM depth
+   (left-right checked, full resolution) on textured pixels.
+
+For each reference pixel the model's L3 inverse depth is sampled bilinearly
+(:func:`metricslam.depth.sample_map`) and inverted. Metrics over pixels with reference depth in
+``[min_depth_m, max_depth_m]``: median of pred/true, abs-rel, RMSE (m), δ<1.25. Beside the
+model, the trivial **flat-road prior**: a ground plane ``camera_height_m`` below the camera
+(depth by image row ``v``: ``fy·h/(v − cy)`` below the horizon, ``max_depth_m`` above it).
+
+Example::
+
+    .venv/bin/python bench/depth_accuracy.py --data ../shared/data \\
+        --model shared/metricslam/models/depth_l3.onnx --out bench/results/depth_accuracy
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from metricslam.datasets.kitti import KittiOdometry
+from metricslam.datasets.kitti_depth import KittiRawDepth
+from metricslam.depth import DepthModel, sample_map
+
+
+def metrics(pred_m: np.ndarray, true_m: np.ndarray) -> dict[str, float]:
+    """Standard single-image depth metrics over matched samples (both (N,) metres)."""
+    ratio = pred_m / true_m
+    return {
+        "median_ratio": float(np.median(ratio)),
+        "abs_rel": float(np.mean(np.abs(pred_m - true_m) / true_m)),
+        "rmse_m": float(np.sqrt(np.mean((pred_m - true_m) ** 2))),
+        "delta_1_25": float(np.mean(np.maximum(ratio, 1 / ratio) < 1.25)),
+        "n_pixels": int(true_m.size),
+    }
+
+
+def flat_road_depth(v_px: np.ndarray, fy_px: float, cy_px: float, camera_height_m: float,
+                    max_depth_m: float) -> np.ndarray:
+    """Depth of a ground plane ``camera_height_m`` below the camera at image rows ``v_px``."""
+    dv = v_px - cy_px
+    with np.errstate(divide="ignore"):
+        z = np.where(dv > 0, fy_px * camera_height_m / np.maximum(dv, 1e-9), max_depth_m)
+    return np.clip(z, 1e-3, max_depth_m)
+
+
+def predict_at(model: DepthModel, image: np.ndarray, fx_px: float, uv_px: np.ndarray,
+               max_depth_m: float) -> np.ndarray:
+    inv = model.predict_inv_depth(image, fx_px)
+    inv_at = sample_map(inv.inv_depth_per_m, uv_px, (inv.image_width_px, inv.image_height_px))
+    return np.clip(1.0 / np.maximum(inv_at, 1.0 / max_depth_m), 1e-3, max_depth_m)
+
+
+def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
+    seq = KittiRawDepth(folder)
+    cam = seq.camera
+    preds, flats, trues, per_frame = [], [], [], []
+    for i in range(0, len(seq), args.frame_step):
+        frame = seq[i]
+        if frame.depth_m is None:
+            continue
+        v, u = np.nonzero((frame.depth_m >= args.min_depth_m) & (frame.depth_m <= args.max_depth_m))
+        true = frame.depth_m[v, u].astype(np.float64)
+        uv = np.stack([u, v], 1).astype(np.float64)
+        pred = predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m)
+        flat = flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m)
+        preds.append(pred), flats.append(flat), trues.append(true)
+        per_frame.append(float(np.median(pred / true)))
+    pred, flat, true = (np.concatenate(x) for x in (preds, flats, trues))
+    return {"frames": len(per_frame), "model": metrics(pred, true), "flat_road": metrics(flat, true),
+            "per_frame_median_ratio": {"mean": float(np.mean(per_frame)), "std": float(np.std(per_frame))}}
+
+
+def sgbm_depth(left: np.ndarray, right: np.ndarray, fx_px: float, baseline_m: float,
+               texture_min: float) -> np.ndarray:
+    """Full-res SGBM depth (m), 0 where invalid, untextured, or failing the left-right check."""
+    from metricslam_train.data import block_matching_pair  # same matcher as the training supervision
+
+    d_left, _ = block_matching_pair(left, right)
+    gx = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3)
+    textured = np.hypot(gx, gy) >= texture_min
+    ok = (d_left > 0) & textured
+    return np.where(ok, fx_px * baseline_m / np.maximum(d_left, 1e-6), 0.0)
+
+
+def evaluate_stereo(model: DepthModel, seq_dir: Path, args) -> dict:
+    seq = KittiOdometry(seq_dir)
+    cam = seq.camera
+    preds, flats, trues = [], [], []
+    for i in range(0, len(seq), args.frame_step):
+        frame = seq[i]
+        ref = sgbm_depth(frame.image, frame.image_right, cam.fx_px, frame.baseline_m, args.texture_min)
+        v, u = np.nonzero((ref >= args.min_depth_m) & (ref <= args.max_depth_m))
+        true = ref[v, u]
+        uv = np.stack([u, v], 1).astype(np.float64)
+        preds.append(predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m))
+        flats.append(flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m))
+        trues.append(true)
+    pred, flat, true = (np.concatenate(x) for x in (preds, flats, trues))
+    return {"sequence": seq_dir.name, "frames": len(preds), "model": metrics(pred, true),
+            "flat_road": metrics(flat, true)}
+
+
+def _table(rows: list[tuple[str, dict]]) -> str:
+    lines = ["| set | method | median pred/true | abs-rel | RMSE (m) | δ<1.25 | pixels |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for name, res in rows:
+        for method in ("model", "flat_road"):
+            m = res[method]
+            lines.append(f"| {name} | {method} | {m['median_ratio']:.3f} | {m['abs_rel']:.3f} | {m['rmse_m']:.2f} | "
+                         f"{m['delta_1_25']:.3f} | {m['n_pixels']} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default="../shared/data", help="the shared data folder")
+    p.add_argument("--model", help="ONNX model (default: shipped)")
+    p.add_argument("--stereo-seq", default="06", help="held-out KITTI odometry sequence ('' to skip)")
+    p.add_argument("--frame-step", type=int, default=1)
+    p.add_argument("--min-depth-m", type=float, default=1.0)
+    p.add_argument("--max-depth-m", type=float, default=80.0)
+    p.add_argument("--camera-height-m", type=float, default=1.65)
+    p.add_argument("--texture-min", type=float, default=40.0, help="Sobel magnitude for 'textured' pixels")
+    p.add_argument("--out", help="write OUT.md and OUT.json")
+    args = p.parse_args(argv)
+
+    data = Path(args.data)
+    model = DepthModel.load(args.model, threads=1)
+    results = {"model_id": model.contract.model_id, "training_data": model.contract.training_data,
+               "lidar": evaluate_lidar(model, data / "kitti_raw_lidar", args)}
+    rows = [("kitti_raw_lidar (LiDAR)", results["lidar"])]
+    if args.stereo_seq:
+        results["stereo"] = evaluate_stereo(model, data / "kitti_odometry" / "sequences" / args.stereo_seq, args)
+        rows.append((f"KITTI {args.stereo_seq} (SGBM, textured)", results["stereo"]))
+    table = _table(rows)
+    print(table)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".json").write_text(json.dumps(results, indent=2))
+        machine = f"{platform.machine()}, {platform.processor() or 'cpu'}, python {platform.python_version()}"
+        out.with_suffix(".md").write_text(
+            f"# Depth accuracy\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
+            f"Machine: {machine}. Model: `{model.contract.model_id}`, trained on: {model.contract.training_data}.\n"
+            f"Depth range {args.min_depth_m}–{args.max_depth_m} m; flat road = plane {args.camera_height_m} m "
+            f"below the camera.\n\n{table}\n\nLiDAR per-frame median ratio: mean "
+            f"{results['lidar']['per_frame_median_ratio']['mean']:.3f} ± "
+            f"{results['lidar']['per_frame_median_ratio']['std']:.3f} over {results['lidar']['frames']} frames.\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

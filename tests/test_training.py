@@ -1,0 +1,186 @@
+"""Training side (torch): loss terms at the true disparity, augmentation, a few real steps."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from metricslam.errors import TrainingError  # noqa: E402
+from metricslam_train.config import TrainConfig  # noqa: E402
+from metricslam_train.data import StereoPairs, augment, build_cache, read_stereo_sequence  # noqa: E402
+from metricslam_train.losses import (  # noqa: E402
+    edge_aware_smoothness,
+    lr_consistency,
+    photometric,
+    supervision,
+    total_loss,
+    warp_horizontal,
+)
+from metricslam_train.network import PyramidDepthNet  # noqa: E402
+
+H, W = 64, 128
+SHIFT_PX = 6  # true disparity of the synthetic fronto-parallel pair
+
+
+def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.uniform(0, 1, (h, w)).astype(np.float32), (5, 5), 1.0)
+
+
+def _pair(shift_px: int = SHIFT_PX):
+    """Left/right (1,1,H,W) of a textured plane with constant disparity: right(u) = left(u + d)."""
+    wide = _texture(H, W + shift_px)
+    left = torch.from_numpy(wide[:, :W].copy())[None, None]
+    right = torch.from_numpy(wide[:, shift_px:shift_px + W].copy())[None, None]
+    return left, right
+
+
+def _const(value: float) -> torch.Tensor:
+    return torch.full((1, 1, H, W), float(value))
+
+
+def test_warp_reconstructs_left_at_true_disparity():
+    left, right = _pair()
+    left_hat = warp_horizontal(right, -_const(SHIFT_PX / W))
+    inner = slice(SHIFT_PX + 1, W - 1)
+    torch.testing.assert_close(left_hat[..., inner], left[..., inner], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("wrong_px", [0, 3, 9, 12])
+def test_photometric_is_lowest_at_true_disparity(wrong_px):
+    left, right = _pair()
+    true = photometric(left, warp_horizontal(right, -_const(SHIFT_PX / W)))
+    wrong = photometric(left, warp_horizontal(right, -_const(wrong_px / W)))
+    assert float(true) < 0.02 < float(wrong)
+    assert float(true) >= 0.0
+
+
+def test_lr_consistency_zero_for_consistent_plane_and_positive_otherwise():
+    d = _const(SHIFT_PX / W)
+    assert float(lr_consistency(d, d)) == pytest.approx(0.0, abs=1e-7)
+    assert float(lr_consistency(d, 1.5 * d)) > 0.0
+
+
+def test_smoothness_zero_for_constant_disparity_positive_for_noise():
+    left, _ = _pair()
+    assert float(edge_aware_smoothness(_const(0.05), left)) == pytest.approx(0.0, abs=1e-7)
+    noisy = _const(0.05) + 0.01 * torch.rand(1, 1, H, W)
+    assert float(edge_aware_smoothness(noisy, left)) > 0.0
+
+
+def test_supervision_zero_at_target_masked_and_pulls_towards_target():
+    target = _const(0.05)
+    target[..., :10] = 0.0  # invalid block-matching pixels
+    pred = _const(0.05)
+    pred[..., :10] = 0.2  # errors where the target is invalid must not count
+    assert float(supervision(pred, target, 0.005)) == pytest.approx(0.0, abs=1e-9)
+    low = _const(0.03).requires_grad_(True)
+    supervision(low, target, 0.005).backward()
+    assert float(low.grad[..., 10:].sum()) < 0  # gradient descent raises the disparity towards 0.05
+
+
+def test_total_loss_is_lower_at_true_disparity_at_every_scale():
+    left, right = _pair()
+    bm = _const(SHIFT_PX / W)
+    ratio = torch.ones(1)
+
+    def outputs(d_frac: float):
+        return [torch.full((1, 2, H >> k, W >> k), d_frac) for k in range(3, 7)]
+
+    true_loss, terms = total_loss(outputs(SHIFT_PX / W), left, right, bm, bm, ratio)
+    wrong_loss, _ = total_loss(outputs(2 * SHIFT_PX / W), left, right, bm, bm, ratio)
+    assert float(true_loss) < float(wrong_loss)
+    assert terms["sup"] == pytest.approx(0.0, abs=1e-6) and terms["lr"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_flip_with_swap_keeps_a_valid_stereo_pair():
+    left, right = _pair()
+    bm = _const(SHIFT_PX / W)
+    gen = torch.Generator().manual_seed(0)
+    new_l, new_r, new_bl, new_br = augment(left, right, bm, bm, gen, p_flip=1.0, gamma_range=(1, 1),
+                                           brightness_range=(1, 1))
+    torch.testing.assert_close(new_l, right.flip(-1))
+    good = photometric(new_l, warp_horizontal(new_r, -new_bl))
+    bad = photometric(left.flip(-1), warp_horizontal(right.flip(-1), -new_bl))  # flip without swap
+    assert float(good) < 0.02 < float(bad)
+
+
+def _write_kitti_folder(root, n: int = 3, h: int = 2 * H, w: int = 2 * W, shift_px: int = 2 * SHIFT_PX):
+    for sub in ("image_0", "image_1"):
+        (root / sub).mkdir(parents=True)
+    for i in range(n):
+        wide = (_texture(h, w + shift_px, seed=i) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "image_0" / f"{i:06d}.png"), wide[:, :w])
+        cv2.imwrite(str(root / "image_1" / f"{i:06d}.png"), wide[:, shift_px:shift_px + w])
+    fx, b = 200.0, 0.5
+    p0 = f"{fx} 0 {w / 2} 0 0 {fx} {h / 2} 0 0 0 1 0"
+    p1 = f"{fx} 0 {w / 2} {-fx * b} 0 {fx} {h / 2} 0 0 0 1 0"
+    (root / "calib.txt").write_text(f"P0: {p0}\nP1: {p1}\n")
+    return root
+
+
+def test_cache_holds_block_matching_disparity_as_width_fraction(tmp_path):
+    seq = read_stereo_sequence(_write_kitti_folder(tmp_path / "seq"))
+    assert seq.baseline_m == pytest.approx(0.5)
+    cache = build_cache(seq, tmp_path / "c.npz", train_baseline_m=0.5, height=H, width=W, num_disparities=32)
+    data = StereoPairs([cache])
+    _, _, bm_left, bm_right, ratio = data[0]
+    assert float(ratio) == pytest.approx(1.0)
+    valid = bm_left[bm_left > 0]
+    assert valid.numel() > 0.3 * H * W
+    assert float(valid.median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
+    assert float(bm_right[bm_right > 0].median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
+
+
+def _config(tmp_path, **over) -> TrainConfig:
+    seq = tmp_path / "seq"
+    values = dict(sequences=[str(seq if seq.is_dir() else _write_kitti_folder(seq))], cache_dir=str(tmp_path / "cache"),
+                  run_dir=str(tmp_path / "run"), input_height=H, input_width=W, steps=4, batch_size=2,
+                  lr=1e-3, checkpoint_every=2, train_baseline_m=0.5, augment={"p_flip": 0.0})
+    values.update(over)
+    return TrainConfig(**values)
+
+
+def test_a_few_training_steps_reduce_the_loss(tmp_path):
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    cfg = _config(tmp_path, steps=12, lr_halve_at=[])
+    train(cfg, progress=False)
+    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == list(range(1, 13))
+    assert set(records[0]) >= {"photo", "lr", "smooth", "sup", "loss"}
+    first = np.mean([r["loss"] for r in records[:3]])
+    last = np.mean([r["loss"] for r in records[-3:]])
+    assert last < first
+
+
+def test_training_resumes_and_exports(tmp_path):
+    from metricslam.depth import DepthModel
+    from metricslam_train.export import export_checkpoint
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    train(_config(tmp_path, steps=2), progress=False)
+    final = train(_config(tmp_path, steps=3), progress=False)  # resumes from last.pt at step 2
+    steps = [json.loads(line)["step"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3]
+    contract = export_checkpoint(final, tmp_path / "m.onnx")
+    model = DepthModel.load(tmp_path / "m.onnx")
+    assert model.contract == contract
+    assert "seq" in contract.training_data and contract.baseline_m == 0.5
+    assert model.predict_d_frac([np.zeros((50, 70), np.uint8)]).shape == (1, H // 8, W // 8)
+
+
+def test_config_rejects_stale_keys(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("sequences: [a]\nlearning_rate: 0.1\n")
+    with pytest.raises(TrainingError, match="learning_rate"):
+        TrainConfig.from_yaml(path)
+    with pytest.raises(TrainingError, match="does not exist"):
+        TrainConfig.from_yaml(tmp_path / "missing.yaml")
