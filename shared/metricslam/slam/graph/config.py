@@ -43,7 +43,8 @@ class GraphConfig(BaseModel):
             (the strongest-parallax ones are not known here, so an even subsample).
         min_inv_depth_per_m / max_inv_depth_per_m: network inverse depths outside are unusable.
         loop_sigma_rot_rad / loop_sigma_trans_rel / loop_sigma_log_scale: loop factor sigmas.
-        loop_kernel: robust kernel on loop factors ("dcs", "cauchy", "huber").
+        loop_kernel: robust kernel on loop factors ("huber", convex, default: a gated loop must be
+            able to pull a drifted map home; "cauchy"; "dcs" refuses large corrections).
         loop_kernel_param: its parameter (whitened units).
         loop_reject_chi2: after a solve, a loop whose whitened squared error exceeds this is
             removed as a false loop.
@@ -70,8 +71,8 @@ class GraphConfig(BaseModel):
     loop_sigma_rot_rad: float = Field(default=0.01, gt=0)
     loop_sigma_trans_rel: float = Field(default=0.05, gt=0)
     loop_sigma_log_scale: float = Field(default=0.05, gt=0)
-    loop_kernel: str = Field(default="dcs", pattern="^(dcs|cauchy|huber)$")
-    loop_kernel_param: float = Field(default=1.0, gt=0)
+    loop_kernel: str = Field(default="huber", pattern="^(dcs|cauchy|huber)$")
+    loop_kernel_param: float = Field(default=2.0, gt=0)
     loop_reject_chi2: float = Field(default=50.0, gt=0)
     relinearize_threshold: float = Field(default=0.01, gt=0)
     relinearize_skip: int = Field(default=1, ge=1)

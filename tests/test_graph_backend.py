@@ -1,0 +1,148 @@
+"""GlobalBackend: unit bookkeeping across corrections, async depth, the no-scale ablation."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from metricslam.errors import DepthSourceError
+from metricslam.geometry import se3, sim3
+from metricslam.slam.backend_factory import make_backend
+from metricslam.slam.graph.backend import GlobalBackend
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.odometry import VoFrameHistory, relative_sim3
+from metricslam.slam.graph.synthetic import CAMERA, SimulatedVO, SyntheticDepthSource, circle_path
+
+
+def _rigid(S: np.ndarray) -> np.ndarray:
+    R, t, _ = sim3.split(S)
+    return se3.from_rt(R, t)
+
+
+def test_history_maps_every_epoch_to_a_common_frame():
+    """T_vo_kf given in successive corrected VO frames map back to one frame with unit scales."""
+    rng = np.random.default_rng(0)
+    hist = VoFrameHistory()
+    T_true = circle_path(12, 20.0, turns=0.3)
+    S_vo0, epochs = [], []
+    for k in range(12):
+        if k % 3 == 2:  # a correction with rotation, translation and a unit change
+            hist.issue(sim3.exp(np.r_[0.1 * rng.normal(size=3), rng.normal(size=3), 0.5 * rng.normal()]))
+        e = hist.epoch
+        C = hist.C(e)
+        # the VO reports the keyframe rigidly in its current frame and units (apply_similarity)
+        T_vo_kf = _rigid(C @ T_true[k])
+        S = hist.to_epoch0(T_vo_kf, e)
+        S_vo0.append(S)
+        epochs.append(e)
+        np.testing.assert_allclose(S, T_true[k] @ np.diag([1.0 / sim3.scale(C)] * 3 + [1.0]), atol=1e-9)
+    for j in range(11):
+        S_jk = relative_sim3(S_vo0[j], S_vo0[j + 1])
+        # its scale carries the unit change between the two keyframes' epochs
+        expected = sim3.scale(hist.C(epochs[j])) / sim3.scale(hist.C(epochs[j + 1]))
+        assert sim3.scale(S_jk) == pytest.approx(expected, rel=1e-9)
+        # rotation of the relative measurement is the true relative rotation in every case
+        R_true = T_true[j][:3, :3].T @ T_true[j + 1][:3, :3]
+        np.testing.assert_allclose(sim3.split(S_jk)[0], R_true, atol=1e-9)
+
+
+@pytest.mark.parametrize("inline", [True, False])
+def test_corrections_make_vo_metric_and_keyframe_scales_consistent(inline):
+    """The VO starts 3x off metric and drifts; corrections are applied like the pipeline does."""
+    n = 80
+    T = circle_path(n, 40.0, turns=0.6)
+    vo = SimulatedVO(T, drift_per_kf=0.01, sigma0=3.0, seed=2)
+    backend = GlobalBackend(GraphConfig(inline=inline), depth_source=SyntheticDepthSource(n))
+    scales_applied = []
+    for _ in range(n):
+        backend.on_keyframe_marginalized(vo.next_keyframe())
+        S = backend.take_correction()
+        if S is not None:
+            scales_applied.append(sim3.scale(S))
+            vo.apply_similarity(S)
+    backend.close()
+    assert backend.scale_established
+    assert max(scales_applied) > 2.5  # the first corrections changed the VO's units a lot
+    est = backend.optimized_keyframe_poses()
+    s_est = np.array([sim3.scale(est[k]) for k in range(n)])
+    np.testing.assert_allclose(s_est / np.array(vo.sigma_at_kf), 1.0, atol=0.04)
+    p_err = np.linalg.norm(np.array([est[k][:3, 3] for k in range(n)]) - T[:, :3, 3], axis=1)
+    assert p_err.max() < 2.5  # 200 m of path
+    # after the warp the VO itself is metric: its current unit is ~1 m
+    assert vo.sigma == pytest.approx(1.0, rel=0.06)
+
+
+class _BlockingSource:
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.calls = 0
+
+    def inv_depth_map(self, image, camera):
+        self.calls += 1
+        self.release.wait(timeout=30)
+        raise DepthSourceError("released")
+
+
+class _FailingSource:
+    calls = 0
+
+    def inv_depth_map(self, image, camera):
+        self.calls += 1
+        raise DepthSourceError("depth service unreachable")
+
+
+def test_slow_depth_source_never_blocks_keyframes():
+    n = 30
+    src = _BlockingSource()
+    backend = GlobalBackend(GraphConfig(inline=False, depth_queue_size=3), depth_source=src)
+    vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1)
+    for _ in range(n):  # would dead-lock here if the caller waited for depth
+        backend.on_keyframe_marginalized(vo.next_keyframe())
+    # the graph worker integrates keyframes while the depth worker is stuck
+    deadline = threading.Event()
+    for _ in range(200):
+        if backend.graph.n_keyframes == n:
+            break
+        deadline.wait(0.05)
+    assert backend.graph.n_keyframes == n
+    assert backend.stats()["depth_dropped"] >= n - 3 - 1  # bounded queue, oldest dropped
+    assert not backend.scale_established
+    src.release.set()
+    backend.close(timeout_s=30)
+    st = backend.stats()
+    assert st["depth_failures"] == src.calls and st["scale_factors"] == 0
+
+
+def test_failing_depth_source_degrades_to_no_scale():
+    n = 20
+    src = _FailingSource()
+    backend = GlobalBackend(GraphConfig(inline=False), depth_source=src)
+    vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1)
+    for _ in range(n):
+        backend.on_keyframe_marginalized(vo.next_keyframe())
+        S = backend.take_correction()
+        if S is not None:
+            vo.apply_similarity(S)
+    backend.close()
+    st = backend.stats()
+    assert st["keyframes"] == n and st["scale_factors"] == 0 and st["depth_failures"] == src.calls > 0
+    assert len(backend.optimized_keyframe_poses()) == n
+
+
+def test_no_scale_backend_never_touches_depth():
+    n = 20
+    src = _FailingSource()
+    backend = make_backend(CAMERA, use_scale=False, depth_source=src, config=GraphConfig(inline=True))
+    vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1, sigma0=2.0)
+    for _ in range(n):
+        backend.on_keyframe_marginalized(vo.next_keyframe())
+        S = backend.take_correction()
+        if S is not None:
+            vo.apply_similarity(S)
+    backend.close()
+    assert src.calls == 0 and backend.depth_source is None
+    assert not backend.scale_established and backend.stats()["scale_factors"] == 0
+    est = backend.optimized_keyframe_poses()
+    assert sim3.scale(est[0]) == pytest.approx(1.0, abs=1e-6)  # VO units of the first keyframe
