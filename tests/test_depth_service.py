@@ -172,6 +172,18 @@ def test_inverse_depth_scales_with_fx_and_width(client):
     np.testing.assert_allclose(b["d_frac"], a["d_frac"], rtol=1e-6)
 
 
+def test_batch_parts_without_filename_are_images(client):
+    boundary = "b0undary"
+    body = b"".join(
+        f"--{boundary}\r\nContent-Disposition: form-data; name=images\r\nContent-Type: image/png\r\n\r\n".encode()
+        + PNG + b"\r\n" for _ in range(2)
+    ) + f"--{boundary}--\r\n".encode()
+    r = client.post("/v1/disparity/batch", params={"fx": FX_PX}, content=body,
+                    headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+    assert r.status_code == 200, r.text
+    assert len(r.json()["results"]) == 2
+
+
 def test_batch_matches_single_requests_json_and_npy(client):
     images = [_image(1226, 370, 1), _image(640, 200, 2), _image(300, 300, 3)]
     files = [("images", ("a.png", _png(images[0]), "image/png")),
@@ -246,8 +258,8 @@ def test_bad_batch_bodies_are_4xx(client):
     _assert_problem(client.post(url, params=params, content=b"--x\r\ngarbage",  # unterminated: no parts
                                 headers={"Content-Type": "multipart/form-data; boundary=x"}), 422)
     _assert_problem(client.post(url, params=params, files=[("other", ("a.png", PNG, "image/png"))]), 422)
-    _assert_problem(client.post(url, params=params, data={"images": "text"},
-                                files=[("x", ("a.png", PNG, "image/png"))]), 422)
+    _assert_problem(client.post(url, params=params, data={"images": "text"},  # part without a type
+                                files=[("x", ("a.png", PNG, "image/png"))]), 415)
     bad = [("images", ("a.png", PNG, "image/png")), ("images", ("b.png", PNG[:100], "image/png"))]
     body = _assert_problem(client.post(url, params=params, files=bad), 400, "undecodable-image")
     assert body["detail"].startswith("image 1:")

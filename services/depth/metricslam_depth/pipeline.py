@@ -101,7 +101,7 @@ class DepthPipeline:
         return DisparityResult.model_construct(
             image_width_px=p.sizes_px[i][0],
             image_height_px=p.sizes_px[i][1],
-            shape=(int(p.d_frac.shape[1]), int(p.d_frac.shape[2])),
+            shape=[int(p.d_frac.shape[1]), int(p.d_frac.shape[2])],
             d_frac=p.d_frac[i].tolist(),
             inv_depth_per_m=p.inv_depth_per_m[i].tolist(),
         )

@@ -11,13 +11,12 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
-from starlette.datastructures import Headers, UploadFile
-from starlette.formparsers import MultiPartException, MultiPartParser
 
 from metricslam.depth import ModelContract
 
 from .errors import RequestProblem
 from .imaging import normalise_media_type
+from .multipart import parse_batch
 from .pipeline import DepthPipeline, Upload
 from .schemas import (
     BINARY_HEADERS,
@@ -87,7 +86,8 @@ def _batch_body_doc() -> dict[str, Any]:
         "requestBody": {
             "required": True,
             "description": "multipart/form-data with one part per image, all named 'images', each "
-            "with its own Content-Type image/png or image/jpeg",
+            "with its own Content-Type image/png or image/jpeg (a filename is optional); other "
+            "parts are ignored",
             "content": {
                 "multipart/form-data": {
                     "schema": {
@@ -236,51 +236,8 @@ async def disparity_batch(request: Request, fx: FxQuery) -> Response:
     _check_declared_length(request, limit, "batch body")
     _pipeline(request)
     body = await _read_body(request, limit, "batch body")
-    uploads = await _parse_batch(Headers(headers={"content-type": content_type}), body, settings.max_batch)
+    uploads = parse_batch(content_type, body, settings.max_batch)
     return await _answer(request, uploads, fx, route, batch=True)
-
-
-async def _parse_batch(headers: Headers, body: bytes, max_batch: int) -> list[Upload]:
-    async def stream():  # type: ignore[no-untyped-def]
-        yield body
-
-    parser = MultiPartParser(headers, stream(), max_files=max_batch, max_fields=32, max_part_size=64 * 1024)
-    try:
-        form = await parser.parse()
-    except MultiPartException as exc:
-        if "files" in exc.message.lower():
-            raise RequestProblem(
-                413, "too-many-images", "Too many images in one batch",
-                f"a batch holds at most {max_batch} images; split the request.",
-            ) from exc
-        raise RequestProblem(
-            400, "bad-multipart", "Malformed multipart body",
-            f"{exc.message} Send multipart/form-data with parts named 'images'.",
-        ) from exc
-    try:
-        parts = form.getlist("images")
-        uploads: list[Upload] = []
-        for index, part in enumerate(parts):
-            if not isinstance(part, UploadFile):
-                raise RequestProblem(
-                    422, "invalid-parameter", "Invalid request parameter",
-                    f"images[{index}] is a text field; send each image as a file part "
-                    "(filename=... and Content-Type image/png or image/jpeg).",
-                )
-            try:
-                media_type = normalise_media_type(part.content_type)
-            except RequestProblem as exc:
-                exc.detail = f"images[{index}]: {exc.detail}"
-                raise
-            uploads.append(Upload(await part.read(), media_type))
-    finally:
-        await form.close()
-    if not uploads:
-        raise RequestProblem(
-            422, "invalid-parameter", "Invalid request parameter",
-            "the batch has no parts named 'images'; add one file part per image.",
-        )
-    return uploads
 
 
 # ----- model, health, readiness, metrics -----

@@ -54,7 +54,9 @@ class DisparityResult(_Out):
 
     image_width_px: int = Field(description="width of the uploaded image (pixels)")
     image_height_px: int = Field(description="height of the uploaded image (pixels)")
-    shape: tuple[int, int] = Field(description="(h, w) of both arrays (coarse L3 output)")
+    shape: list[int] = Field(
+        min_length=2, max_length=2, description="[h, w] of both arrays (coarse L3 output)"
+    )
     d_frac: list[list[float]] = Field(
         description="disparity as a fraction of image width, [row][col], shape (h, w)"
     )
