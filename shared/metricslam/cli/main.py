@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "eval": "metricslam.cli.eval_cmd",
     "synth": "metricslam.cli.synth_cmd",
     "depth-service": "metricslam.cli.depth_service_cmd",
+    "run": "metricslam.cli.run_cmd",
 }
 
 log = logging.getLogger("metricslam")

@@ -1,0 +1,168 @@
+"""``SlamPipeline``: local VO + optional global back end, as one :class:`SlamSession`.
+
+The pipeline only orchestrates: frames go to :class:`~metricslam.slam.vo.local_vo.LocalVO`;
+marginalized keyframes go to the back end; after every frame the back end's correction (a Sim(3)
+"warp", paper §III-D) is applied to the VO so the newest pose is metric. Every frame is anchored
+to a keyframe (``T_kf_cam``) so :meth:`SlamPipeline.trajectory` gives each frame its current best
+pose: ``S_world_kf`` from the back end for marginalized keyframes (rotation ``R_world_kf·R_kf_cam``,
+position ``S_world_kf · t_kf_cam``, ``docs/conventions.md``), else the VO's keyframe pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.datasets.base import Frame
+from metricslam.geometry import sim3, so3
+from metricslam.slam.types import Backend, MarginalizedKeyframe, PoseEstimate
+from metricslam.slam.vo.config import VOConfig
+from metricslam.slam.vo.local_vo import LocalVO
+
+log = logging.getLogger(__name__)
+
+
+class SlamPipeline:
+    """Implements :class:`metricslam.slam.types.SlamSession`.
+
+    Args:
+        camera: intrinsics of the incoming frames.
+        vo_config: local VO parameters.
+        backend: the global back end (``metricslam.slam.backend_factory.make_backend``), or
+            None for VO only (poses in the VO's arbitrary monocular scale).
+    """
+
+    def __init__(self, camera: PinholeCamera, vo_config: VOConfig | None = None,
+                 backend: Backend | None = None) -> None:
+        self.camera = camera
+        self.backend = backend
+        self.vo = LocalVO(vo_config or VOConfig(), camera, consumer=self)
+        self._lock = threading.Lock()
+        self._estimates: list[PoseEstimate] = []
+        # frame_index -> [kf_frame_index, T_kf_cam (4, 4) in the VO units of that keyframe]
+        self._anchors: dict[int, list] = {}
+        self._marginalized: set[int] = set()
+        self._timings_ms: dict[str, list[float]] = defaultdict(list)
+        self._corrections = 0
+        self._closed = False
+
+    # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
+    def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
+        self._marginalized.add(kf.frame_index)
+        if self.backend is not None:
+            t0 = time.perf_counter()
+            self.backend.on_keyframe_marginalized(kf)
+            self._timings_ms["backend_handoff"].append(1e3 * (time.perf_counter() - t0))
+
+    # -- SlamSession --------------------------------------------------------------------------
+    def process(self, frame: Frame) -> PoseEstimate:
+        """Track one frame, feed the back end, apply its correction. Never raises on bad input."""
+        t0 = time.perf_counter()
+        est = self.vo.process(frame)
+        self._collect_anchors()
+        if self.backend is not None:
+            try:
+                S_new_vo = self.backend.take_correction()
+                if S_new_vo is not None:
+                    self._apply_correction(S_new_vo)
+                    est = self._rewarp(est, S_new_vo)
+                scale_ok = bool(self.backend.scale_established)
+            except Exception:  # noqa: BLE001 -- a back-end failure must not stop tracking
+                log.exception("back end failed after frame %d", frame.index)
+                scale_ok = False
+            if scale_ok:
+                est = PoseEstimate(est.frame_index, est.t_ns, est.T_world_cam, est.state,
+                                   est.is_keyframe, est.segment_id, True)
+        with self._lock:
+            self._estimates.append(est)
+        self._timings_ms["total"].append(1e3 * (time.perf_counter() - t0))
+        return est
+
+    def trajectory(self) -> list[PoseEstimate]:
+        """Best pose of every processed frame, in frame order (see module docstring)."""
+        self._collect_anchors()
+        kf_vo = self.vo.keyframe_poses()
+        kf_global = self.backend.optimized_keyframe_poses() if self.backend is not None else {}
+        out = []
+        with self._lock:
+            for est in self._estimates:
+                anchor = self._anchors.get(est.frame_index)
+                T = est.T_world_cam
+                if anchor is not None:
+                    kf_index, T_kf_cam = anchor
+                    if kf_index in kf_global:
+                        T = _compose_sim3_rigid(kf_global[kf_index], T_kf_cam)
+                    elif kf_index in kf_vo:
+                        T = kf_vo[kf_index] @ T_kf_cam
+                out.append(PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
+                                        est.segment_id, est.scale_established))
+        return out
+
+    def stats(self) -> dict:
+        """Frames, keyframes, tracking losses and mean ms per frame of each stage."""
+        c = dict(self.vo.counters)
+        n = max(c["frames"], 1)
+        per_frame = {k: float(np.sum(v)) / n for k, v in self.vo.timings_ms.items()}
+        per_call = {k: float(np.mean(v)) for k, v in self.vo.timings_ms.items() if v}
+        for k, v in self._timings_ms.items():
+            per_frame[k] = float(np.sum(v)) / n
+            per_call[k] = float(np.mean(v)) if v else 0.0
+        out = {"frames": c["frames"], "keyframes": c["keyframes"],
+               "tracking_losses": c["tracking_losses"], "invalid_frames": c["invalid_frames"],
+               "marginalized_keyframes": c["marginalized"], "ba_solves": c["ba_solves"],
+               "corrections_applied": self._corrections,
+               "ms_per_frame": per_frame, "ms_per_call": per_call}
+        if self.backend is not None and hasattr(self.backend, "stats"):
+            try:
+                out["backend"] = self.backend.stats()
+            except Exception:  # noqa: BLE001
+                log.exception("back end stats failed")
+        return out
+
+    def close(self) -> None:
+        """Marginalize the remaining window into the back end, finish it, stop workers."""
+        if self._closed:
+            return
+        self._closed = True
+        self.vo.close()
+        self._collect_anchors()
+        if self.backend is not None:
+            self.backend.close()
+
+    # -- internals ----------------------------------------------------------------------------
+    def _collect_anchors(self) -> None:
+        for a in self.vo.take_anchor_updates():
+            self._anchors[a.frame_index] = [a.kf_frame_index, a.T_kf_cam]
+
+    def _apply_correction(self, S_new_vo: np.ndarray) -> None:
+        self.vo.apply_similarity(S_new_vo)
+        self._corrections += 1
+        s = sim3.scale(S_new_vo)
+        # anchors to keyframes still in the VO are in VO units, which just changed by s
+        for anchor in self._anchors.values():
+            if anchor[0] not in self._marginalized:
+                T = anchor[1].copy()
+                T[:3, 3] *= s
+                anchor[1] = T
+
+    @staticmethod
+    def _rewarp(est: PoseEstimate, S_new_vo: np.ndarray) -> PoseEstimate:
+        T = _compose_sim3_rigid(S_new_vo, est.T_world_cam)
+        return PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
+                            est.segment_id, est.scale_established)
+
+
+def _compose_sim3_rigid(S_world_kf: np.ndarray, T_kf_cam: np.ndarray) -> np.ndarray:
+    """Rigid ``T_world_cam``: rotation ``R_world_kf·R_kf_cam``, position ``S_world_kf·t_kf_cam``."""
+    A = np.asarray(S_world_kf, dtype=float)
+    s = float(np.cbrt(np.linalg.det(A[:3, :3])))
+    R, t = so3.project_to_so3(A[:3, :3] / s), A[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R @ T_kf_cam[:3, :3]
+    out[:3, 3] = s * R @ T_kf_cam[:3, 3] + t
+    return out

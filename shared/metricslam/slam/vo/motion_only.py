@@ -1,0 +1,49 @@
+"""Motion-only bundle adjustment: one camera pose against known world points (Gauss-Newton,
+Huber). Used to track every frame against the window map and to initialize new keyframes.
+
+Reuses :func:`reprojection.project` with an identity "host", bearing = world point and ρ = 1,
+so ``q = R_cam_world p_world + t_cam_world`` and ``J_target`` is the pose Jacobian.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from metricslam.geometry import se3
+from metricslam.slam.vo.ba import orthonormalized
+from metricslam.slam.vo.reprojection import huber_weights, project
+
+
+def estimate_pose(T_world_cam: np.ndarray, p_world: np.ndarray, uv_px: np.ndarray, K: np.ndarray,
+                  huber_px: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """Refine ``T_world_cam`` (4, 4) from points (N, 3) and their pixels (N, 2).
+
+    Returns:
+        ``(T_world_cam, inliers (N,) bool)``; inliers have a residual below ``3·huber_px`` and
+        positive depth.
+    """
+    n = len(p_world)
+    T = np.array(T_world_cam, dtype=float)
+    if n < 3:
+        return T, np.zeros(n, dtype=bool)
+    eye = np.repeat(np.eye(4)[None], n, axis=0)
+    rho = np.ones(n)
+    for it in range(iterations):
+        Tn = np.repeat(T[None], n, axis=0)
+        pr = project(eye, Tn, p_world, rho, uv_px, K)
+        # wide robust kernel first (the prediction may be pixels off), then the nominal one
+        k = huber_px * max(1.0, 8.0 / 2.0**it)
+        w = huber_weights(pr.residual_px, k) * pr.valid
+        J = pr.J_target
+        H = np.einsum("nki,nkj->ij", J * w[:, None, None], J)
+        g = np.einsum("nki,nk->i", J * w[:, None, None], pr.residual_px)
+        try:
+            dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            break
+        T = orthonormalized(se3.retract(T, dx))
+        if np.linalg.norm(dx) < 1e-8:
+            break
+    pr = project(eye, np.repeat(T[None], n, axis=0), p_world, rho, uv_px, K, with_jacobians=False)
+    inl = pr.valid & (np.linalg.norm(pr.residual_px, axis=1) < 3.0 * huber_px)
+    return T, inl
