@@ -120,6 +120,8 @@ def procedural(kind: str, frames: int, seed: int) -> np.ndarray:
 
 
 def save_kitti_poses(path: str | Path, T_world_cam: np.ndarray) -> None:
-    """Write (N, 4, 4) poses as KITTI lines (3x4 row-major, full float precision)."""
-    rows = np.asarray(T_world_cam)[:, :3, :].reshape(len(T_world_cam), 12)
-    np.savetxt(path, rows, fmt="%.12e")
+    """Write (N, 4, 4) poses as KITTI lines (3x4 row-major, exact shortest float repr)."""
+    rows = np.asarray(T_world_cam, float)[:, :3, :].reshape(len(T_world_cam), 12)
+    text = "".join(" ".join(np.format_float_scientific(v, unique=True) for v in row) + "\n"
+                   for row in rows)
+    Path(path).write_text(text)

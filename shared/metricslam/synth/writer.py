@@ -68,7 +68,9 @@ class KittiWriter:
         P0, P1 = projection_matrices(self.camera, self.baseline_m)
         lines = []
         for name, P in (("P0", P0), ("P1", P1), ("P2", P0), ("P3", P1)):
-            lines.append(f"{name}: " + " ".join(f"{v:.12e}" for v in P.ravel()))
+            # shortest exact repr: the file parses back to exactly these doubles
+            lines.append(f"{name}: " + " ".join(np.format_float_scientific(v, unique=True)
+                                                 for v in P.ravel()))
         (self.out / "calib.txt").write_text("\n".join(lines) + "\n")
         times = np.arange(len(T_world_cam)) / frame_rate_hz
         (self.out / "times.txt").write_text("".join(f"{t:.6e}\n" for t in times))
