@@ -14,7 +14,8 @@ class LoopConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     enabled: bool = True
-    n_orb_features: int = Field(default=600, gt=0)
+    n_orb_features: int = Field(default=500, gt=0)
+    image_scale: float = Field(default=0.5, gt=0, le=1)  # ORB runs on the image resized by this
     vocabulary_words: int = Field(default=400, gt=8)
     vocabulary_train_keyframes: int = Field(default=12, gt=0)
     skip_recent_keyframes: int = Field(default=30, ge=1)

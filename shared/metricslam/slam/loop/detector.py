@@ -37,6 +37,7 @@ class LoopDetector:
     def __init__(self, config: LoopConfig | None = None, seed: int = 0) -> None:
         self.config = config or LoopConfig()
         self._orb = cv2.ORB_create(nfeatures=self.config.n_orb_features, fastThreshold=12)
+        self._orb_landmarks = cv2.ORB_create(nlevels=1)
         self._vocab: BinaryVocabulary | None = None
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
@@ -51,9 +52,14 @@ class LoopDetector:
                       landmarks_uv_px: np.ndarray, landmarks_inv_depth: np.ndarray) -> list[LoopCandidate]:
         """Add keyframe ``kf_id`` and return verified loops to older keyframes (maybe empty)."""
         gray = to_gray_u8(image)
-        _, desc = self._orb.detectAndCompute(gray, None)
+        f = self.config.image_scale
+        # retrieval: ORB detection costs per pixel, so it runs on a downscaled image; landmark
+        # descriptors (verification) stay at full resolution with a single-level ORB (cheap)
+        small = gray if f == 1.0 else cv2.resize(
+            gray, (round(gray.shape[1] * f), round(gray.shape[0] * f)), interpolation=cv2.INTER_AREA)
+        _, desc = self._orb.detectAndCompute(small, None)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
-        self._features[kf_id] = landmark_features(self._orb, gray, camera, landmarks_uv_px,
+        self._features[kf_id] = landmark_features(self._orb_landmarks, gray, camera, landmarks_uv_px,
                                                   landmarks_inv_depth)
         self._order.append(kf_id)
         if self._vocab is None:

@@ -55,11 +55,12 @@ class BinaryVocabulary:
         bits = np.unpackbits(X, axis=1).astype(np.float32)  # (N, 256)
         for _ in range(iterations):
             assign = _hamming_assign(X, words)
-            counts = np.bincount(assign, minlength=k).astype(np.float32)
-            sums = np.zeros((k, bits.shape[1]), dtype=np.float32)
-            np.add.at(sums, assign, bits)
+            counts = np.bincount(assign, minlength=k)
+            order = np.argsort(assign, kind="stable")
             alive = counts > 0
-            words[alive] = np.packbits((sums[alive] / counts[alive, None]) >= 0.5, axis=1)
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[alive]
+            sums = np.add.reduceat(bits[order], starts, axis=0)  # per-cluster bit counts
+            words[alive] = np.packbits(sums / counts[alive, None] >= 0.5, axis=1)
             dead = np.flatnonzero(~alive)  # re-seed empty clusters
             if dead.size:
                 words[dead] = X[rng.choice(len(X), size=dead.size, replace=False)]

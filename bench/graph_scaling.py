@@ -1,0 +1,133 @@
+"""Global Sim(3) graph solve time vs number of keyframes (100 / 1,000 / 10,000).
+
+Builds the graph the way the back end does — one keyframe at a time with its odometry factor
+and ``max_scale_landmarks`` learned scale factors, one ISAM2 update each — on a synthetic
+drifting VO (``metricslam.slam.graph.synthetic``). Reports per-keyframe update time over the
+last 10 % of keyframes (what the back end pays per keyframe at that size), the solve after a
+loop closure from the newest keyframe to the first one (the worst case: the whole chain is
+re-eliminated), a full estimate read-out, and one batch Levenberg-Marquardt solve of the same
+graph for comparison (skipped above ``--batch-max`` keyframes).
+
+Example::
+
+    .venv/bin/python bench/graph_scaling.py --sizes 100 1000 10000 --out bench/results/graph_scaling
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from metricslam.geometry import sim3
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.odometry import odometry_information, relative_sim3
+from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
+from metricslam.geometry import se3
+from metricslam.slam.graph.synthetic import circle_path
+
+
+def run_size(n: int, cfg: GraphConfig, batch_max: int, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    T = circle_path(n, 100.0, turns=max(1.0, n / 600.0) * (n - 1) / n)
+    graph = GlobalPoseGraph(cfg)
+    sigma = 1.0
+    T_vo = np.eye(4)
+    S_prev = None
+    update_ms = []
+    S_true = []
+    for k in range(n):
+        if k > 0:
+            sigma *= float(np.exp(0.01 + 0.003 * rng.normal()))
+            T_rel = se3.inverse(T[k - 1]) @ T[k]
+            T_rel[:3, 3] /= sigma
+            T_vo = T_vo @ T_rel
+        S_vo = T_vo.copy()
+        S_true.append(sim3.from_se3(T[k], sigma))
+        t0 = time.perf_counter()
+        if S_prev is None:
+            graph.add_keyframe(k, S_vo)
+        else:
+            S_rel = relative_sim3(S_prev, S_vo)
+            graph.add_keyframe(k, graph.estimate(k - 1) @ S_rel, k - 1, S_rel,
+                               odometry_information(S_rel, None, cfg))
+        scales = sigma * np.exp(0.1 * rng.normal(size=cfg.max_scale_landmarks))
+        graph.add_scale_measurements(k, scales)
+        graph.solve()
+        update_ms.append(1e3 * (time.perf_counter() - t0))
+        S_prev = S_vo
+    tail = np.array(update_ms[-max(1, n // 10):])
+    t0 = time.perf_counter()
+    est = graph.estimates()
+    estimate_ms = 1e3 * (time.perf_counter() - t0)
+    s_err = np.array([sim3.scale(est[k]) / sim3.scale(S_true[k]) - 1 for k in range(n)])
+    S_loop = sim3.inverse(S_true[0]) @ S_true[-1]
+    sig = np.array([0.01] * 3 + [max(0.05 * np.linalg.norm(S_loop[:3, 3]), 0.05)] * 3 + [0.05])
+    t0 = time.perf_counter()
+    decision = graph.add_loop(0, n - 1, S_loop, sig)
+    graph.solve()
+    loop_ms = 1e3 * (time.perf_counter() - t0)
+    batch_ms = None
+    if n <= batch_max:
+        g = graph.factor_graph()
+        values = graph.values()
+        t0 = time.perf_counter()
+        gtsam.LevenbergMarquardtOptimizer(g, values, gtsam.LevenbergMarquardtParams()).optimize()
+        batch_ms = 1e3 * (time.perf_counter() - t0)
+    return {
+        "keyframes": n,
+        "factors": int(graph.factor_graph().size()),
+        "update_ms_mean_last10pct": float(tail.mean()),
+        "update_ms_p95_last10pct": float(np.percentile(tail, 95)),
+        "estimate_all_ms": estimate_ms,
+        "loop_gate_and_solve_ms": loop_ms,
+        "loop_accepted": bool(decision.accepted),
+        "batch_lm_ms": batch_ms,
+        "scale_error_pct_max": float(100 * np.abs(s_err).max()),
+        "total_build_s": float(sum(update_ms) / 1e3),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10000])
+    p.add_argument("--batch-max", type=int, default=1000)
+    p.add_argument("--out", help="write OUT.md and OUT.json")
+    args = p.parse_args(argv)
+    cfg = GraphConfig()
+    rows = []
+    for n in args.sizes:
+        r = run_size(n, cfg, args.batch_max)
+        print(json.dumps(r), flush=True)
+        rows.append(r)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+        out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
+                                                        "command": " ".join(sys.argv)}, indent=2))
+        lines = [
+            "# Global graph solve time vs keyframes", "",
+            f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine} (shared with other jobs)", "",
+            f"Each keyframe: 1 odometry factor + {cfg.max_scale_landmarks} Huber log-scale factors, one ISAM2 update.",
+            "", "| keyframes | factors | update ms (mean, last 10 %) | p95 | all estimates ms | loop (gate + solve) ms | batch LM ms | max scale err % |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for r in rows:
+            b = "—" if r["batch_lm_ms"] is None else f"{r['batch_lm_ms']:.0f}"
+            lines.append(f"| {r['keyframes']} | {r['factors']} | {r['update_ms_mean_last10pct']:.2f} | "
+                         f"{r['update_ms_p95_last10pct']:.2f} | {r['estimate_all_ms']:.1f} | "
+                         f"{r['loop_gate_and_solve_ms']:.0f} | {b} | {r['scale_error_pct_max']:.1f} |")
+        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
