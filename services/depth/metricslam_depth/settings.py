@@ -37,9 +37,11 @@ class DepthServiceSettings(BaseSettings):
     model_path: Path | None = Field(
         None, description="ONNX model file; None = the model shipped inside metricslam"
     )
-    threads: int = Field(2, ge=1, le=64, description="onnxruntime intra-op threads")
+    # Measured on the 2-core dev machine: two single-threaded requests in parallel beat one
+    # two-threaded request (decode/resize/encode do not parallelise inside one request).
+    threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads per request")
     max_concurrency: int = Field(
-        1, ge=1, le=64, description="requests decoded and inferred at the same time"
+        2, ge=1, le=64, description="requests decoded and inferred at the same time (~ cores)"
     )
     max_queue: int = Field(32, ge=0, le=10_000, description="requests allowed to wait for a slot")
     request_timeout_s: float = Field(

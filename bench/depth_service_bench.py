@@ -1,0 +1,229 @@
+"""Benchmark the depth service over HTTP: req/s and latency percentiles, JSON vs binary, and a soak.
+
+Starts the real service (``metricslam depth-service``) on 127.0.0.1, loads KITTI-size PNG frames
+from a KITTI odometry sequence, and drives it with keep-alive ``http.client`` connections, one
+thread per concurrent client (the client is cheap so that most CPU goes to the server; client and
+server still share the machine, which the report says).
+
+Example::
+
+    .venv/bin/python bench/depth_service_bench.py \\
+        --frames /work/shared/data/kitti_odometry/sequences/06/image_0 \\
+        --out bench/results/depth_service.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import platform
+import shlex
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from metricslam_depth.process import ServiceProcess
+
+FX_PX = 718.856
+
+
+@dataclass
+class RunResult:
+    """Outcome of one load level."""
+
+    clients: int
+    form: str
+    requests: int
+    seconds: float
+    latencies_ms: list[float] = field(default_factory=list)
+    statuses: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def rps(self) -> float:
+        return self.requests / self.seconds
+
+    def pct(self, q: float) -> float:
+        return float(np.percentile(self.latencies_ms, q))
+
+
+def rss_mib(pid: int) -> float:
+    """Resident set size of ``pid`` in MiB (Linux ``/proc``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: int,
+            latencies: list[float], statuses: dict[int, int], lock: threading.Lock) -> None:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    headers = {"Content-Type": "image/png"}
+    if binary:
+        headers["Accept"] = "application/x-npy"
+    mine: list[float] = []
+    codes: dict[int, int] = {}
+    for i in range(count):
+        body = frames[(offset + i) % len(frames)]
+        t0 = time.perf_counter()
+        conn.request("POST", f"/v1/disparity?fx={FX_PX}", body=body, headers=headers)
+        response = conn.getresponse()
+        response.read()
+        mine.append((time.perf_counter() - t0) * 1e3)
+        codes[response.status] = codes.get(response.status, 0) + 1
+    conn.close()
+    with lock:
+        latencies.extend(mine)
+        for code, n in codes.items():
+            statuses[code] = statuses.get(code, 0) + n
+
+
+def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total: int) -> RunResult:
+    """``total`` requests split over ``clients`` concurrent keep-alive connections."""
+    per_client = max(1, total // clients)
+    latencies: list[float] = []
+    statuses: dict[int, int] = {}
+    lock = threading.Lock()
+    threads = [
+        threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock))
+        for k in range(clients)
+    ]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    seconds = time.perf_counter() - t0
+    return RunResult(clients, "npy" if binary else "json", per_client * clients, seconds, latencies, statuses)
+
+
+def machine_description() -> str:
+    cpu = "unknown CPU"
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    mem_kib = int(Path("/proc/meminfo").read_text().split()[1])
+    return (f"{cpu}, {os.cpu_count()} cores, {mem_kib / 2**20:.0f} GiB RAM, {platform.system()} "
+            f"{platform.release()}, Python {platform.python_version()}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=Path, required=True,
+                        help="folder of KITTI PNG frames, e.g. .../kitti_odometry/sequences/06/image_0")
+    parser.add_argument("--port", type=int, default=18110)
+    parser.add_argument("--clients", type=int, nargs="+", default=[1, 4, 16])
+    parser.add_argument("--requests", type=int, default=1000, help="requests per load level")
+    parser.add_argument("--soak", type=int, default=10_000, help="requests in the soak (0 = skip)")
+    parser.add_argument("--soak-clients", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=None, help="DEPTH_THREADS for the server")
+    parser.add_argument("--max-concurrency", type=int, default=None, help="DEPTH_MAX_CONCURRENCY")
+    parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
+    parser.add_argument("--json", type=Path, default=None, help="write raw numbers as JSON here")
+    args = parser.parse_args(argv)
+
+    paths = sorted(args.frames.glob("*.png"))
+    if not paths:
+        print(f"no PNG frames in {args.frames}; pass --frames to a KITTI image_0 folder", file=sys.stderr)
+        return 1
+    frames = [p.read_bytes() for p in paths]
+    import cv2
+    shape = cv2.imdecode(np.frombuffer(frames[0], np.uint8), cv2.IMREAD_UNCHANGED).shape
+
+    server_settings: dict[str, object] = {"max_queue": 256, "max_connections": 512}
+    if args.threads is not None:
+        server_settings["threads"] = args.threads
+    if args.max_concurrency is not None:
+        server_settings["max_concurrency"] = args.max_concurrency
+    load_before = os.getloadavg()
+    results: list[RunResult] = []
+    soak: dict[str, object] = {}
+    with ServiceProcess(args.port, settings=server_settings) as service:
+        run_level(args.port, frames, 2, True, 100)  # warm up (first-call allocations, caches)
+        rss_start = rss_mib(service.pid)
+        for clients in args.clients:
+            for binary in (False, True):
+                r = run_level(args.port, frames, clients, binary, args.requests)
+                results.append(r)
+                print(f"{clients:>3} clients {r.form:>4}: {r.rps:7.1f} req/s  p50 {r.pct(50):6.1f} ms  "
+                      f"p99 {r.pct(99):6.1f} ms  statuses {r.statuses}", flush=True)
+        if args.soak:
+            rss_before = rss_mib(service.pid)
+            samples = [(0, rss_before)]
+            step = max(1, args.soak // 10)
+            done, soak_statuses, soak_lat = 0, {}, []
+            t0 = time.perf_counter()
+            while done < args.soak:
+                r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step)
+                done += r.requests
+                soak_lat.extend(r.latencies_ms)
+                for code, n in r.statuses.items():
+                    soak_statuses[code] = soak_statuses.get(code, 0) + n
+                samples.append((done, rss_mib(service.pid)))
+            soak = {
+                "requests": done, "clients": args.soak_clients, "seconds": time.perf_counter() - t0,
+                "rss_before_mib": rss_before, "rss_after_mib": samples[-1][1], "rss_samples": samples,
+                "statuses": soak_statuses, "p50_ms": float(np.percentile(soak_lat, 50)),
+                "p99_ms": float(np.percentile(soak_lat, 99)),
+            }
+            print(f"soak {done} requests: RSS {rss_before:.1f} -> {samples[-1][1]:.1f} MiB, statuses {soak_statuses}")
+    load_after = os.getloadavg()
+
+    command = " ".join(shlex.quote(a) for a in [".venv/bin/python", "bench/depth_service_bench.py", *(argv or sys.argv[1:])])
+    report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(report)
+        print(f"wrote {args.out}")
+    if args.json:
+        raw = {"levels": [{"clients": r.clients, "form": r.form, "requests": r.requests, "rps": r.rps,
+                           "p50_ms": r.pct(50), "p90_ms": r.pct(90), "p99_ms": r.pct(99),
+                           "statuses": r.statuses} for r in results], "soak": soak}
+        args.json.write_text(json.dumps(raw, indent=2))
+    return 0
+
+
+def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_frames: int,
+           server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple) -> str:
+    lines = [
+        "# Depth service benchmark",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {machine_description()}. **Shared with other engineers' work while measured** "
+        f"(1-min load average {load_before[0]:.2f} before, {load_after[0]:.2f} after), so these are "
+        "pessimistic numbers; the client runs on the same 2 cores as the server.",
+        "",
+        f"Input: {n_frames} real KITTI PNG frames ({shape[1]}x{shape[0]} gray), POST /v1/disparity, "
+        f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
+        f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items())} (other settings default).",
+        "",
+        "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | statuses |",
+        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for r in results:
+        lines.append(f"| {r.clients} | {r.form} | {r.requests} | {r.rps:.1f} | {r.pct(50):.1f} | "
+                     f"{r.pct(90):.1f} | {r.pct(99):.1f} | {r.statuses} |")
+    if soak:
+        lines += [
+            "",
+            f"## Soak: {soak['requests']} requests, {soak['clients']} clients, JSON and npy alternating "
+            f"per {soak['requests'] // 10}",
+            "",
+            f"Server RSS {soak['rss_before_mib']:.1f} MiB before -> {soak['rss_after_mib']:.1f} MiB after "
+            f"({soak['seconds']:.0f} s, p50 {soak['p50_ms']:.1f} ms, p99 {soak['p99_ms']:.1f} ms, statuses "
+            f"{soak['statuses']}). RSS after warm-up, before the load levels: {rss_start:.1f} MiB.",
+            "",
+            "RSS every 10 %: " + ", ".join(f"{n}: {m:.1f}" for n, m in soak["rss_samples"]) + " (requests: MiB)",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
