@@ -32,10 +32,15 @@ def schur_complement(H: np.ndarray, g: np.ndarray, keep: np.ndarray) -> tuple[np
     Hab = H[np.ix_(keep, drop)]
     Hbb = H[np.ix_(drop, drop)]
     Hbb = 0.5 * (Hbb + Hbb.T)
-    # tiny regularization: a keyframe with no remaining constraints has a singular block
-    reg = 1e-9 * max(float(np.trace(Hbb)) / max(Hbb.shape[0], 1), 1e-12)
-    Hbb_inv_Hba_g = np.linalg.solve(Hbb + reg * np.eye(Hbb.shape[0]),
-                                    np.concatenate([Hab.T, g[drop, None]], axis=1))
+    rhs = np.concatenate([Hab.T, g[drop, None]], axis=1)
+    try:
+        Hbb_inv_Hba_g = np.linalg.solve(Hbb, rhs)
+        if not np.all(np.isfinite(Hbb_inv_Hba_g)):
+            raise np.linalg.LinAlgError("non-finite solve")
+    except np.linalg.LinAlgError:
+        # a keyframe with no remaining constraints: its block is singular; the pseudo-inverse
+        # marginalizes only the constrained directions
+        Hbb_inv_Hba_g = np.linalg.pinv(Hbb, hermitian=True) @ rhs
     H_new = Haa - Hab @ Hbb_inv_Hba_g[:, :-1]
     g_new = g[keep] - Hab @ Hbb_inv_Hba_g[:, -1]
     return 0.5 * (H_new + H_new.T), g_new

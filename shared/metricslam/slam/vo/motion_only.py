@@ -34,6 +34,8 @@ def estimate_pose(T_world_cam: np.ndarray, p_world: np.ndarray, uv_px: np.ndarra
         # wide robust kernel first (the prediction may be pixels off), then the nominal one
         k = huber_px * max(1.0, 8.0 / 2.0**it)
         w = huber_weights(pr.residual_px, k) * pr.valid
+        if k == huber_px:  # once converged near the solution, ignore gross outliers entirely
+            w = w * (np.linalg.norm(pr.residual_px, axis=1) < 3.0 * huber_px)
         J = pr.J_target
         H = np.einsum("nki,nkj->ij", J * w[:, None, None], J)
         g = np.einsum("nki,nk->i", J * w[:, None, None], pr.residual_px)
