@@ -11,14 +11,15 @@ from metricslam import disparity
 from metricslam.camera import PinholeCamera
 from metricslam.errors import CameraError
 
-settings.register_profile("metricslam", max_examples=40, deadline=None)
-settings.load_profile("metricslam")
+#: per-test settings (no global profile: other modules keep their own)
+SETTINGS = settings(max_examples=40, deadline=None)
 
 KITTI = PinholeCamera(fx_px=707.0912, fy_px=707.0912, cx_px=601.8873, cy_px=183.1104,
                       width_px=1226, height_px=370)
 seeds = st.integers(0, 2**32 - 1)
 
 
+@SETTINGS
 @given(seeds)
 def test_project_unproject_round_trip(seed):
     rng = np.random.default_rng(seed)
@@ -45,6 +46,7 @@ def test_normalized_and_K():
     assert PinholeCamera.from_K(P, 1226, 370) == KITTI
 
 
+@SETTINGS
 @given(seeds, st.floats(0.2, 3.0), st.floats(0.2, 3.0))
 def test_resize_maps_pixel_centres_consistently(seed, sx, sy):
     """A 3-D point projects to u in the original and (u + 0.5)·sx − 0.5 in the resized image."""
@@ -82,6 +84,7 @@ def test_camera_is_frozen_and_validates():
 
 # ---------------------------------------------------------------- disparity
 
+@SETTINGS
 @given(seeds)
 def test_disparity_depth_round_trip(seed):
     rng = np.random.default_rng(seed)

@@ -11,8 +11,8 @@ from scipy.linalg import expm
 from metricslam.errors import AlignmentError, GeometryError
 from metricslam.geometry import align, se3, sim3, so3
 
-settings.register_profile("metricslam", max_examples=40, deadline=None)
-settings.load_profile("metricslam")
+#: per-test settings (no global profile: other modules keep their own)
+SETTINGS = settings(max_examples=40, deadline=None)
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)
@@ -41,12 +41,14 @@ def hat7(z: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------- SO(3)
 
+@SETTINGS
 @given(vec3, vec3)
 def test_hat_is_cross_product_and_vee_inverts_it(a, b):
     assert np.allclose(so3.hat(a) @ b, np.cross(a, b))
     assert np.allclose(so3.vee(so3.hat(a)), a)
 
 
+@SETTINGS
 @given(vec3.map(lambda v: v * 3.0))
 def test_so3_exp_matches_matrix_exponential(omega):
     assert np.allclose(so3.exp(omega), expm(so3.hat(omega)), atol=1e-12)
@@ -73,6 +75,7 @@ def test_so3_log_at_exactly_pi_gives_angle_pi():
     assert np.allclose(so3.exp(w), R, atol=1e-12)
 
 
+@SETTINGS
 @given(seeds)
 def test_quaternion_round_trip_xyzw(seed):
     R = random_rotation(np.random.default_rng(seed))
@@ -99,6 +102,7 @@ def test_so3_rejects_non_rotations_and_zero_quaternion():
         so3.exp(np.zeros(4))
 
 
+@SETTINGS
 @given(seeds)
 def test_project_to_so3_returns_nearest_rotation(seed):
     rng = np.random.default_rng(seed)
@@ -111,6 +115,7 @@ def test_project_to_so3_returns_nearest_rotation(seed):
 
 # ---------------------------------------------------------------- SE(3)
 
+@SETTINGS
 @given(vec3.map(lambda v: v * 3.0), vec3.map(lambda v: v * 10.0))
 def test_se3_exp_matches_matrix_exponential_and_log_inverts(omega, v):
     xi = np.concatenate([omega, v])
@@ -129,6 +134,7 @@ def test_se3_round_trip_near_zero_and_pi(theta):
     assert np.allclose(se3.log(T), xi, atol=1e-6)
 
 
+@SETTINGS
 @given(seeds)
 def test_se3_group_identities(seed):
     rng = np.random.default_rng(seed)
@@ -145,6 +151,7 @@ def test_se3_group_identities(seed):
     assert np.allclose(se3.local(A, se3.retract(A, xi)), xi, atol=1e-9)
 
 
+@SETTINGS
 @given(seeds)
 def test_se3_adjoint_moves_a_right_perturbation_to_the_left(seed):
     rng = np.random.default_rng(seed)
@@ -174,6 +181,7 @@ def test_se3_check_rejects_bad_shapes_and_rows():
 
 # ---------------------------------------------------------------- Sim(3)
 
+@SETTINGS
 @given(vec3.map(lambda v: v * 3.0), vec3.map(lambda v: v * 10.0), st.floats(-2.0, 2.0))
 def test_sim3_exp_matches_matrix_exponential_and_log_inverts(omega, u, lam):
     z = np.concatenate([omega, u, [lam]])
@@ -198,6 +206,7 @@ def test_sim3_with_zero_scale_log_equals_se3():
     assert np.allclose(sim3.exp(np.append(xi, 0.0)), se3.exp(xi), atol=1e-12)
 
 
+@SETTINGS
 @given(seeds)
 def test_sim3_group_identities(seed):
     rng = np.random.default_rng(seed)
@@ -235,6 +244,7 @@ def test_sim3_gtsam_convention():
     assert np.allclose(M / M[3, 3], S)
 
 
+@SETTINGS
 @given(seeds)
 def test_exp_and_log_match_gtsam_tangent_order(seed):
     gtsam = pytest.importorskip("gtsam")
@@ -255,6 +265,7 @@ def _random_sim3(rng: np.random.Generator, with_scale: bool) -> np.ndarray:
     return sim3.from_rts(random_rotation(rng), rng.normal(size=3) * 10, s)
 
 
+@SETTINGS
 @given(seeds, st.booleans())
 def test_umeyama_recovers_a_random_similarity_exactly(seed, with_scale):
     rng = np.random.default_rng(seed)
@@ -265,6 +276,7 @@ def test_umeyama_recovers_a_random_similarity_exactly(seed, with_scale):
     assert np.allclose(S, S_true, atol=1e-8)
 
 
+@SETTINGS
 @given(seeds)
 def test_umeyama_with_noise_is_close_and_se3_keeps_unit_scale(seed):
     rng = np.random.default_rng(seed)
@@ -276,6 +288,7 @@ def test_umeyama_with_noise_is_close_and_se3_keeps_unit_scale(seed):
     assert sim3.scale(align.umeyama(p_est, p_gt, with_scale=False)) == pytest.approx(1.0)
 
 
+@SETTINGS
 @given(seeds)
 def test_align_trajectory_recovers_poses(seed):
     rng = np.random.default_rng(seed)

@@ -11,8 +11,8 @@ from metricslam.errors import TrajectoryError
 from metricslam.geometry import se3
 from metricslam.trajectory import io as tio
 
-settings.register_profile("metricslam", max_examples=40, deadline=None)
-settings.load_profile("metricslam")
+#: per-test settings (no global profile: other modules keep their own)
+SETTINGS = settings(max_examples=40, deadline=None)
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
@@ -36,6 +36,7 @@ def test_kitti_accepts_3x4_input(tmp_path):
     assert np.allclose(tio.read_kitti_poses(tmp_path / "a.txt"), T, atol=1e-8)
 
 
+@SETTINGS
 @given(st.lists(st.integers(0, 2**62), min_size=1, max_size=30, unique=True))
 def test_tum_timestamps_round_trip_to_the_nanosecond(stamps):
     import tempfile

@@ -73,7 +73,7 @@ def list_images(folder: Path, exts: tuple[str, ...] = (".png", ".jpg", ".jpeg"))
     return files
 
 
-@dataclass
+@dataclass(eq=False)
 class FileSequence:
     """A :class:`~metricslam.datasets.base.Sequence` backed by lists of files.
 
