@@ -6,6 +6,8 @@ Use :func:`metricslam.synth.generate_sequence` to write a KITTI-layout folder; u
 
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,8 +155,15 @@ def generate_sequence(out_dir: str | Path, frames: int, seed: int, trajectory: s
         from tqdm import tqdm
 
         indices = tqdm(indices, desc="synth", unit="frame")
-    for i in indices:
-        f = scene.frame(i)
-        writer.write_frame(i, f.left, f.right, f.depth_m)
+    # PNG encoding (OpenCV releases the GIL) overlaps with rendering the next frame
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pending: deque[Future] = deque()
+        for i in indices:
+            f = scene.frame(i)
+            pending.append(pool.submit(writer.write_frame, i, f.left, f.right, f.depth_m))
+            while len(pending) > 3:
+                pending.popleft().result()
+        for fut in pending:
+            fut.result()
     writer.finish(T, cfg.frame_rate_hz)
     return scene

@@ -20,6 +20,9 @@ from metricslam.synth.meshes import UP, Mesh, MeshBuilder
 
 _CELL_M = 2.0  # ground ribbon step along the path
 _REVISIT_M = 40.0  # path parts further apart than this (in arc length) are "other parts"
+_SINK_PER_M = 1e-5  # ribbon height offset per metre of arc length (see _ribbon)
+_TERRAIN_CELL_M = 10.0
+_TERRAIN_DROP_M = 0.3  # fallback ground lies this far below the ribbon
 
 
 class WorldConfig(BaseModel):
@@ -119,6 +122,45 @@ class _Layout:
         return True
 
 
+def _free_of_other_parts(tree: cKDTree, pts: np.ndarray, s_all: np.ndarray, centre: np.ndarray,
+                         s_cell: np.ndarray, w: float, outer_lat: float) -> np.ndarray:
+    """Mask of off-road cells that neither touch another path part's road nor lie inside an
+    earlier part's ribbon (which already covers that ground)."""
+    keep = np.ones(len(centre), bool)
+    for i, near in enumerate(tree.query_ball_point(centre[:, [0, 2]], max(outer_lat + 1.0, w + 2.0))):
+        if not near:
+            continue
+        near = np.asarray(near)
+        ds = s_all[near] - s_cell[i]
+        dist = np.linalg.norm(pts[near][:, [0, 2]] - centre[i, [0, 2]], axis=1)
+        other = (np.abs(ds) > _REVISIT_M) & (np.abs(pts[near, 1] - centre[i, 1]) < 4.0)
+        keep[i] = not ((other & (dist < w + 2.0)).any() or (other & (ds < 0) & (dist < outer_lat + 1.0)).any())
+    return keep
+
+
+def _terrain(mb: MeshBuilder, pts: np.ndarray, cfg: WorldConfig) -> None:
+    """Coarse fallback ground under everything within ``verge_width_m + 40`` m of the path, so
+    no gap between ribbons (at crossings) ever shows the void."""
+    reach = cfg.verge_width_m + 40.0
+    lo = pts[:, [0, 2]].min(axis=0) - reach
+    hi = pts[:, [0, 2]].max(axis=0) + reach
+    gx = np.arange(lo[0], hi[0] + _TERRAIN_CELL_M, _TERRAIN_CELL_M)
+    gz = np.arange(lo[1], hi[1] + _TERRAIN_CELL_M, _TERRAIN_CELL_M)
+    tree = cKDTree(pts[:, [0, 2]])
+    X, Z = np.meshgrid(gx, gz, indexing="ij")
+    dist, nearest = tree.query(np.stack([X.ravel(), Z.ravel()], 1))
+    Y = (pts[nearest, 1] + _TERRAIN_DROP_M).reshape(X.shape)
+    used = (dist < reach + _TERRAIN_CELL_M).reshape(X.shape)
+    i, j = np.nonzero(used[:-1, :-1] & used[1:, :-1] & used[:-1, 1:] & used[1:, 1:])
+
+    def v(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.stack([X[a, b], Y[a, b], Z[a, b]], 1)
+
+    corners = np.stack([v(i, j), v(i + 1, j), v(i + 1, j + 1), v(i, j + 1)], 1)
+    uv = corners[:, :, [0, 2]]
+    mb.add_quads(corners, uv, mt.VERGE, (0.8, 0.0, 0.0), np.tile(UP, (len(corners), 1)))
+
+
 def _ribbon(mb: MeshBuilder, pts: np.ndarray, tangent: np.ndarray, w: float, sw: float,
             cfg: WorldConfig) -> None:
     """Road, kerbs, sidewalks and verges along the path, minus cells owned by other parts."""
@@ -136,7 +178,10 @@ def _ribbon(mb: MeshBuilder, pts: np.ndarray, tangent: np.ndarray, w: float, sw:
                   (sign * (w + sw), sign * verge_out, kerb_h - 0.02, mt.VERGE)]
 
     def point(k: np.ndarray, lat: float, h: float) -> np.ndarray:
-        return c[k] + right[k] * lat + UP * h
+        # 10 µm lower per metre of path: where the path meets itself (loops, crossings) the
+        # earlier surface lies a fraction of a millimetre above the later one, so the z-buffer
+        # resolves the overlap the same way in every frame and both cameras (no z-fighting)
+        return c[k] + right[k] * lat + UP * (h - _SINK_PER_M * s[k])[:, None]
 
     k0 = np.arange(len(idx) - 1)
     k1 = k0 + 1
@@ -144,21 +189,10 @@ def _ribbon(mb: MeshBuilder, pts: np.ndarray, tangent: np.ndarray, w: float, sw:
         lo, hi = sorted((lat_in, lat_out))
         centre = 0.5 * (point(k0, 0.5 * (lo + hi), h) + point(k1, 0.5 * (lo + hi), h))
         s_cell = 0.5 * (s[k0] + s[k1])
-        radius = w if mat == mt.ROAD else max(abs(lo), abs(hi)) + 1.0
-        keep = np.ones(len(k0), bool)
-        for i, near in enumerate(tree.query_ball_point(centre[:, [0, 2]], radius)):
-            if not near:
-                continue
-            near = np.asarray(near)
-            ds = s_all[near] - s_cell[i]
-            dist = np.linalg.norm(pts[near][:, [0, 2]] - centre[i, [0, 2]], axis=1)
-            dy = np.abs(pts[near, 1] - centre[i, 1])
-            other = (np.abs(ds) > _REVISIT_M) & (dy < 4.0)
-            earlier = other & (ds < 0)
-            if mat == mt.ROAD:
-                keep[i] = not earlier.any()
-            else:
-                keep[i] = not ((other & (dist < w + 0.5)).any() or earlier.any())
+        if mat == mt.ROAD:  # roads always stay; overlaps are resolved by the height offset
+            keep = np.ones(len(k0), bool)
+        else:
+            keep = _free_of_other_parts(tree, pts, s_all, centre, s_cell, w, max(abs(lo), abs(hi)))
         corners = np.stack([point(k0, lo, h), point(k0, hi, h), point(k1, hi, h),
                             point(k1, lo, h)], axis=1)[keep]
         uv = np.stack([np.stack([s[k0], np.full(len(k0), lo)], 1), np.stack([s[k0], np.full(len(k0), hi)], 1),
@@ -278,6 +312,7 @@ def build_world(T_world_cam: np.ndarray, seed: int, cfg: WorldConfig | None = No
     pts, tangent = _centerline(np.asarray(T_world_cam, float), cfg)
     mb = MeshBuilder()
     _ribbon(mb, pts, tangent, w, sw, cfg)
+    _terrain(mb, pts, cfg)
     _objects(mb, pts, tangent, w, sw, rng, cfg)
     az = float(rng.uniform(0, 2 * np.pi))
     el = float(rng.uniform(np.radians(30), np.radians(60)))
