@@ -43,6 +43,8 @@ class RunResult:
     seconds: float
     latencies_ms: list[float] = field(default_factory=list)
     statuses: dict[int, int] = field(default_factory=dict)
+    server_cpu_s: float = 0.0
+    client_cpu_s: float = 0.0
 
     @property
     def rps(self) -> float:
@@ -58,6 +60,12 @@ def rss_mib(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time consumed so far by ``pid`` (Linux ``/proc``), seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: int,
@@ -83,7 +91,8 @@ def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: in
             statuses[code] = statuses.get(code, 0) + n
 
 
-def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total: int) -> RunResult:
+def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total: int,
+              server_pid: int) -> RunResult:
     """``total`` requests split over ``clients`` concurrent keep-alive connections."""
     per_client = max(1, total // clients)
     latencies: list[float] = []
@@ -93,13 +102,15 @@ def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total:
         threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock))
         for k in range(clients)
     ]
+    server_cpu0, client_cpu0 = cpu_seconds(server_pid), time.process_time()
     t0 = time.perf_counter()
     for t in threads:
         t.start()
     for t in threads:
         t.join()
     seconds = time.perf_counter() - t0
-    return RunResult(clients, "npy" if binary else "json", per_client * clients, seconds, latencies, statuses)
+    return RunResult(clients, "npy" if binary else "json", per_client * clients, seconds, latencies, statuses,
+                     cpu_seconds(server_pid) - server_cpu0, time.process_time() - client_cpu0)
 
 
 def machine_description() -> str:
@@ -145,14 +156,15 @@ def main(argv: list[str] | None = None) -> int:
     results: list[RunResult] = []
     soak: dict[str, object] = {}
     with ServiceProcess(args.port, settings=server_settings) as service:
-        run_level(args.port, frames, 2, True, 100)  # warm up (first-call allocations, caches)
+        run_level(args.port, frames, 2, True, 100, service.pid)  # warm up (first-call allocations, caches)
         rss_start = rss_mib(service.pid)
         for clients in args.clients:
             for binary in (False, True):
-                r = run_level(args.port, frames, clients, binary, args.requests)
+                r = run_level(args.port, frames, clients, binary, args.requests, service.pid)
                 results.append(r)
                 print(f"{clients:>3} clients {r.form:>4}: {r.rps:7.1f} req/s  p50 {r.pct(50):6.1f} ms  "
-                      f"p99 {r.pct(99):6.1f} ms  statuses {r.statuses}", flush=True)
+                      f"p99 {r.pct(99):6.1f} ms  server CPU {r.server_cpu_s / r.requests * 1e3:.1f} ms/req  "
+                      f"statuses {r.statuses}", flush=True)
         if args.soak:
             rss_before = rss_mib(service.pid)
             samples = [(0, rss_before)]
@@ -160,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
             done, soak_statuses, soak_lat = 0, {}, []
             t0 = time.perf_counter()
             while done < args.soak:
-                r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step)
+                r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step, service.pid)
                 done += r.requests
                 soak_lat.extend(r.latencies_ms)
                 for code, n in r.statuses.items():
@@ -184,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         raw = {"levels": [{"clients": r.clients, "form": r.form, "requests": r.requests, "rps": r.rps,
                            "p50_ms": r.pct(50), "p90_ms": r.pct(90), "p99_ms": r.pct(99),
+                           "server_cpu_ms_per_req": r.server_cpu_s / r.requests * 1e3,
+                           "client_cpu_ms_per_req": r.client_cpu_s / r.requests * 1e3,
                            "statuses": r.statuses} for r in results], "soak": soak}
         args.json.write_text(json.dumps(raw, indent=2))
     return 0
@@ -204,12 +218,13 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
         f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items())} (other settings default).",
         "",
-        "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | statuses |",
-        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | --- |",
+        "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | server CPU ms/req | client CPU ms/req | statuses |",
+        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     for r in results:
         lines.append(f"| {r.clients} | {r.form} | {r.requests} | {r.rps:.1f} | {r.pct(50):.1f} | "
-                     f"{r.pct(90):.1f} | {r.pct(99):.1f} | {r.statuses} |")
+                     f"{r.pct(90):.1f} | {r.pct(99):.1f} | {r.server_cpu_s / r.requests * 1e3:.1f} | "
+                     f"{r.client_cpu_s / r.requests * 1e3:.1f} | {r.statuses} |")
     if soak:
         lines += [
             "",
