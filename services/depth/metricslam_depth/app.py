@@ -15,7 +15,7 @@ import logging
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from fastapi import FastAPI
 
@@ -25,6 +25,7 @@ from .admission import AdmissionGate
 from .errors import install_error_handlers
 from .metrics import MetricsMiddleware, ServiceMetrics
 from .pipeline import DepthPipeline
+from .routes import router
 from .settings import DepthServiceSettings
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,6 @@ class ServiceState:
     gate: AdmissionGate | None = None
     pipeline: DepthPipeline | None = None
     load_error: str | None = None
-    loaded: threading.Event = field(default_factory=threading.Event)
 
 
 def _load_model(state: ServiceState) -> None:
@@ -64,7 +64,6 @@ def _load_model(state: ServiceState) -> None:
     )
     state.pipeline = DepthPipeline(model, s.max_image_pixels, state.metrics)
     state.metrics.model_loaded.set(1)
-    state.loaded.set()
 
 
 def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
@@ -73,8 +72,6 @@ def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
     Args:
         settings: service settings; ``None`` reads them from the environment.
     """
-    from .routes import router  # routes import schemas only; kept here to avoid a cycle
-
     settings = settings or DepthServiceSettings()
     metrics = ServiceMetrics()
     state = ServiceState(settings=settings, metrics=metrics)
@@ -92,7 +89,7 @@ def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
             yield
         finally:
             await asyncio.to_thread(loader.join)
-            state.gate.shutdown()
+            await asyncio.to_thread(state.gate.shutdown)
 
     app = FastAPI(
         title="metricslam depth service",
