@@ -1,0 +1,170 @@
+"""One camera's worker: bounded drop-oldest frame queue -> SlamSession -> pose/keyframe out.
+
+The zenoh callback only calls :meth:`CameraWorker.offer` (append raw bytes, O(1)); decoding and
+SLAM run on the worker's own thread so a slow frame never blocks the transport. Malformed frames
+(bad bytes, wrong camera id, intrinsics that change mid-stream) are counted and dropped.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.datasets.base import Frame
+from metricslam.errors import CodecError
+from metricslam.slam.types import PoseEstimate, SlamSession, TrackingState
+from metricslam.wire.codec import FrameMessage, KeyframeMessage, Message, PoseMessage, StatusMessage, decode_as
+
+log = logging.getLogger(__name__)
+Publish = Callable[[str, Message], None]  # (topic, message)
+
+
+class CameraWorker:
+    """Owns one camera's queue, session and counters.
+
+    Args:
+        camera_id: the key chunk of ``metricslam/<camera_id>/frame``.
+        session_factory: ``(camera_id, camera) -> SlamSession``, called on the first valid frame.
+        publish: sends a message on ``metricslam/<camera_id>/<topic>``.
+        queue_size: frames held; on overflow the oldest is dropped and counted.
+        keyframe_images: attach the image to keyframe messages.
+    """
+
+    def __init__(self, camera_id: str, session_factory: Callable[[str, PinholeCamera], SlamSession],
+                 publish: Publish, queue_size: int = 8, keyframe_images: bool = False) -> None:
+        self.camera_id = camera_id
+        self._factory = session_factory
+        self._publish = publish
+        self._keyframe_images = keyframe_images
+        self._queue: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=queue_size)
+        self._cond = threading.Condition()
+        self._stop = False
+        self._session: SlamSession | None = None
+        self._session_lock = threading.Lock()
+        self._camera: PinholeCamera | None = None
+        self.frames_received = 0
+        self.frames_processed = 0
+        self.queue_drops = 0
+        self.malformed = 0
+        self.keyframes = 0
+        self.last_state: TrackingState | None = None
+        self.scale_established = False
+        self._latencies_ms: collections.deque[float] = collections.deque(maxlen=500)
+        self._done_times: collections.deque[float] = collections.deque(maxlen=50)
+        self._last_T = np.eye(4)
+        self._thread = threading.Thread(target=self._run, name=f"slam-{camera_id}", daemon=True)
+        self._thread.start()
+
+    # -- called from zenoh's thread ----------------------------------------------------------
+    def offer(self, payload: bytes) -> None:
+        """Queue a raw frame payload; drops (and counts) the oldest when full."""
+        with self._cond:
+            self.frames_received += 1
+            if len(self._queue) == self._queue.maxlen:
+                self.queue_drops += 1
+            self._queue.append((time.perf_counter_ns(), payload))
+            self._cond.notify()
+
+    # -- worker thread -----------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait()
+                if self._stop and not self._queue:
+                    return
+                t_in_ns, payload = self._queue.popleft()
+            try:
+                self._handle(t_in_ns, payload)
+            except Exception:  # a bad frame or a session bug must never end the loop
+                log.exception("camera %s: frame handling failed", self.camera_id)
+
+    def _reject(self, why: str) -> None:
+        self.malformed += 1
+        if self.malformed <= 5 or self.malformed % 100 == 0:
+            log.warning("camera %s: dropped malformed frame #%d: %s", self.camera_id, self.malformed, why)
+
+    def _handle(self, t_in_ns: int, payload: bytes) -> None:
+        try:
+            msg = decode_as(payload, FrameMessage)
+        except CodecError as exc:
+            return self._reject(str(exc))
+        if msg.camera_id != self.camera_id:
+            return self._reject(f"header camera_id {msg.camera_id!r} != key camera id")
+        if self._camera is None:
+            with self._session_lock:
+                self._session = self._factory(self.camera_id, msg.camera)
+            self._camera = msg.camera
+            log.info("camera %s: new SLAM session, %s", self.camera_id, msg.camera)
+        elif msg.camera != self._camera:
+            return self._reject("intrinsics changed mid-stream; use a new camera id")
+        frame = Frame(index=msg.frame_index, t_ns=msg.t_ns, image=msg.image, camera=msg.camera)
+        with self._session_lock:
+            try:
+                est = self._session.process(frame)
+            except Exception:  # the protocol says process never raises; be defensive anyway
+                log.exception("camera %s: session.process raised", self.camera_id)
+                est = PoseEstimate(msg.frame_index, msg.t_ns, self._last_T, TrackingState.INVALID_FRAME)
+        self._last_T = est.T_world_cam
+        latency_ms = (time.perf_counter_ns() - t_in_ns) / 1e6
+        self._publish("pose", PoseMessage(
+            camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
+            state=est.state, is_keyframe=est.is_keyframe, segment_id=est.segment_id,
+            scale_established=est.scale_established, processing_ms=latency_ms,
+            t_sent_ns=msg.t_sent_ns, T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
+        if est.is_keyframe:
+            self.keyframes += 1
+            self._publish("keyframe", KeyframeMessage(
+                camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
+                segment_id=est.segment_id, scale_established=est.scale_established,
+                T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64),
+                image=msg.image if self._keyframe_images else None))
+        self.frames_processed += 1
+        self.last_state = est.state
+        self.scale_established = est.scale_established
+        self._latencies_ms.append(latency_ms)
+        self._done_times.append(time.monotonic())
+
+    # -- queries -----------------------------------------------------------------------------
+    def trajectory(self) -> list[PoseEstimate]:
+        """The session's current trajectory (waits for at most the frame being processed)."""
+        with self._session_lock:
+            return [] if self._session is None else list(self._session.trajectory())
+
+    def status(self, depth_url: str | None, depth_reachable: bool | None,
+               depth_error: str | None) -> StatusMessage:
+        lat = np.array(self._latencies_ms) if self._latencies_ms else None
+        times = list(self._done_times)
+        fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
+        stats: dict = {}
+        if self._session is not None:
+            try:
+                stats = {k: v for k, v in self._session.stats().items()
+                         if isinstance(v, (int, float, str, bool)) or v is None}
+            except Exception:  # stats are best effort
+                log.exception("camera %s: session.stats failed", self.camera_id)
+        return StatusMessage(
+            camera_id=self.camera_id, t_ns=time.time_ns(), frames_received=self.frames_received,
+            frames_processed=self.frames_processed, queue_drops=self.queue_drops,
+            malformed=self.malformed, queue_depth=len(self._queue), fps=fps,
+            latency_ms_p50=None if lat is None else float(np.percentile(lat, 50)),
+            latency_ms_p99=None if lat is None else float(np.percentile(lat, 99)),
+            tracking_state=self.last_state, scale_established=self.scale_established,
+            keyframes=self.keyframes, depth_url=depth_url, depth_reachable=depth_reachable,
+            depth_error=depth_error, session_stats=stats)
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Finish the queued frames, stop the thread, close the session."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        with self._session_lock:
+            if self._session is not None:
+                self._session.close()

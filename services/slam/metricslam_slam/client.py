@@ -1,0 +1,138 @@
+"""Client-side helpers over a zenoh session: publish frames, record poses/status, query.
+
+Used by the ``replay``/``poses``/``camera``/``demo`` commands, the benchmark and the tests.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from metricslam.camera import PinholeCamera
+from metricslam.errors import CodecError, ServiceError
+from metricslam.wire import keys
+from metricslam.wire.codec import (
+    FrameMessage, KeyframeMessage, PoseMessage, StatusMessage, TrajectoryMessage, decode_as, encode,
+)
+
+
+class FramePublisher:
+    """Publishes one camera's frames. ``block=True`` (replay) never drops in the transport;
+    ``block=False`` (live camera) lets zenoh drop under congestion."""
+
+    def __init__(self, session: zenoh.Session, camera_id: str, block: bool = True) -> None:
+        self.camera_id = keys.check_camera_id(camera_id)
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._publisher = session.declare_publisher(keys.key(camera_id, "frame"), congestion_control=cc)
+
+    def publish(self, frame_index: int, t_ns: int, image: np.ndarray, camera: PinholeCamera) -> int:
+        """Send one frame; returns the send time (``time.perf_counter_ns``) for latency bookkeeping."""
+        message = FrameMessage(camera_id=self.camera_id, frame_index=frame_index, t_ns=t_ns,
+                               camera=camera, t_sent_ns=time.time_ns(), image=image)
+        payload = encode(message)
+        t_send = time.perf_counter_ns()
+        self._publisher.put(payload)
+        return t_send
+
+    def close(self) -> None:
+        self._publisher.undeclare()
+
+
+class PoseRecorder:
+    """Records ``…/pose`` (and ``…/status``, ``…/keyframe``) of one camera as they arrive.
+
+    Attributes:
+        poses: frame_index -> the latest :class:`PoseMessage` for it.
+        arrival_ns: frame_index -> ``time.perf_counter_ns()`` at arrival.
+        statuses: every :class:`StatusMessage` received, in order.
+        keyframes: every :class:`KeyframeMessage` received.
+        malformed: payloads that did not decode.
+    """
+
+    def __init__(self, session: zenoh.Session, camera_id: str) -> None:
+        self.camera_id = keys.check_camera_id(camera_id)
+        self.poses: dict[int, PoseMessage] = {}
+        self.arrival_ns: dict[int, int] = {}
+        self.statuses: list[StatusMessage] = []
+        self.keyframes: list[KeyframeMessage] = []
+        self.malformed = 0
+        self._cond = threading.Condition()
+        self._subs = [
+            session.declare_subscriber(keys.key(camera_id, "pose"), self._on_pose),
+            session.declare_subscriber(keys.key(camera_id, "status"), self._on_status),
+            session.declare_subscriber(keys.key(camera_id, "keyframe"), self._on_keyframe),
+        ]
+
+    def _decode(self, sample: zenoh.Sample, cls):
+        try:
+            return decode_as(sample.payload.to_bytes(), cls)
+        except CodecError:
+            self.malformed += 1
+            return None
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        t = time.perf_counter_ns()
+        msg = self._decode(sample, PoseMessage)
+        if msg is not None:
+            with self._cond:
+                self.poses[msg.frame_index] = msg
+                self.arrival_ns[msg.frame_index] = t
+                self._cond.notify_all()
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(sample, StatusMessage)
+        if msg is not None:
+            with self._cond:
+                self.statuses.append(msg)
+                self._cond.notify_all()
+
+    def _on_keyframe(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(sample, KeyframeMessage)
+        if msg is not None:
+            with self._cond:
+                self.keyframes.append(msg)
+
+    def wait_for(self, predicate, timeout_s: float) -> bool:
+        """Wait until ``predicate(self)`` is true (re-checked on every arrival) or the timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate(self):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(min(left, 0.5))
+        return True
+
+    def wait_frames(self, n_frames: int, timeout_s: float) -> bool:
+        """Wait until poses of ``n_frames`` distinct frames arrived."""
+        return self.wait_for(lambda r: len(r.poses) >= n_frames, timeout_s)
+
+    def latest_status(self) -> StatusMessage | None:
+        with self._cond:
+            return self.statuses[-1] if self.statuses else None
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+
+
+def query_trajectory(session: zenoh.Session, camera_id: str, timeout_s: float = 5.0) -> TrajectoryMessage:
+    """Ask the SLAM service for a camera's whole current trajectory."""
+    errors = []
+    for reply in session.get(keys.key(camera_id, "trajectory"), timeout=timeout_s):
+        if reply.ok is not None:
+            return decode_as(reply.ok.payload.to_bytes(), TrajectoryMessage)
+        errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
+    raise ServiceError(f"no trajectory for camera {camera_id!r}: {'; '.join(errors) or 'no SLAM service answered'}")
+
+
+def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> dict | None:
+    """The SLAM service's health JSON, or None if no service answered in time."""
+    for reply in session.get(keys.HEALTH_KEY, timeout=timeout_s):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return None

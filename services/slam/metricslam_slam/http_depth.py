@@ -1,0 +1,148 @@
+"""``HttpDepthSource``: the depth service over HTTP, as a :class:`metricslam.slam.depth_source.DepthSource`.
+
+``inv_depth_map(image, camera)`` PNG-encodes the keyframe image, ``POST``s it to
+``{url}/v1/disparity?fx=<fx_px>`` and returns the service's metric inverse depth (h, w) float32
+(1/m) for that camera, covering the whole image. Connection failures, timeouts and 5xx/429 are
+retried a bounded number of times with a short backoff, then :class:`DepthSourceError` is raised —
+the global back end treats that as "no scale factor for this keyframe" and tracking goes on.
+``reachable`` (None until first use) and ``last_error`` say whether the service answers; the SLAM
+service reports them on ``…/status`` and calls :meth:`probe` (``GET /readyz``) periodically so the
+status recovers as soon as the depth service is back.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import threading
+import time
+
+import cv2
+import httpx
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.errors import DepthSourceError, ImageError
+
+log = logging.getLogger(__name__)
+_RETRY_STATUS = {429, 502, 503, 504}
+
+
+class HttpDepthSource:
+    """Client of the depth service. Thread-safe (one pooled ``httpx.Client``).
+
+    Args:
+        url: base URL, e.g. ``http://127.0.0.1:8000``.
+        timeout_s: read timeout of one request (s).
+        connect_timeout_s: connect timeout (s); short, so a dead service is noticed fast.
+        retries: extra attempts after the first for connection errors, timeouts, 429/5xx.
+        backoff_s: sleep before retry k is ``backoff_s * 2**k``.
+    """
+
+    def __init__(self, url: str, timeout_s: float = 5.0, connect_timeout_s: float = 0.5,
+                 retries: int = 2, backoff_s: float = 0.2) -> None:
+        self.url = url.rstrip("/")
+        self.retries = int(retries)
+        self.backoff_s = float(backoff_s)
+        self._client = httpx.Client(base_url=self.url, timeout=httpx.Timeout(
+            timeout_s, connect=connect_timeout_s))
+        self._lock = threading.Lock()
+        self._reachable: bool | None = None
+        self._last_error: str | None = None
+        self.requests_ok = 0
+        self.requests_failed = 0
+
+    # -- state -------------------------------------------------------------------------------
+    @property
+    def reachable(self) -> bool | None:
+        """True after a successful request/probe, False after a failed one, None before any."""
+        return self._reachable
+
+    @property
+    def last_error(self) -> str | None:
+        return self._last_error
+
+    def _mark(self, ok: bool, error: str | None = None) -> None:
+        with self._lock:
+            if ok and self._reachable is False:
+                log.info("depth service at %s is reachable again", self.url)
+            if not ok and self._reachable is not False:
+                log.warning("depth service at %s unreachable: %s", self.url, error)
+            self._reachable = ok
+            self._last_error = None if ok else error
+
+    # -- API ---------------------------------------------------------------------------------
+    def probe(self, timeout_s: float = 1.0) -> bool:
+        """``GET /readyz``; updates and returns :attr:`reachable`."""
+        try:
+            ok = self._client.get("/readyz", timeout=timeout_s).status_code == 200
+            self._mark(ok, None if ok else "/readyz is not 200 (model not loaded yet?)")
+        except httpx.HTTPError as exc:
+            self._mark(False, f"{type(exc).__name__}: {exc}")
+        return bool(self._reachable)
+
+    def inv_depth_map(self, image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+        """Metric inverse depth (h, w) float32 in 1/m for ``image`` taken with ``camera``.
+
+        Raises:
+            DepthSourceError: the service could not be reached or answered garbage after retries.
+        """
+        body = _encode_png(image)
+        params = {"fx": f"{camera.fx_px:.6f}"}
+        headers = {"Content-Type": "image/png", "Accept": "application/json"}
+        error = "no attempt"
+        for attempt in range(self.retries + 1):
+            if attempt:
+                time.sleep(self.backoff_s * 2 ** (attempt - 1))
+            try:
+                response = self._client.post("/v1/disparity", params=params, content=body,
+                                             headers=headers)
+            except httpx.HTTPError as exc:
+                error = f"{type(exc).__name__}: {exc}"
+                continue
+            if response.status_code in _RETRY_STATUS:
+                error = f"HTTP {response.status_code}"
+                continue
+            if response.status_code != 200:
+                self.requests_failed += 1
+                self._mark(True)  # it answered: reachable, but refused this request
+                raise DepthSourceError(f"depth service rejected the keyframe: HTTP "
+                                       f"{response.status_code} {response.text[:200]}")
+            inv_depth = _parse(response)
+            self.requests_ok += 1
+            self._mark(True)
+            return inv_depth
+        self.requests_failed += 1
+        self._mark(False, error)
+        raise DepthSourceError(f"depth service at {self.url} failed after {self.retries + 1} "
+                               f"attempt(s): {error}; start it (`metricslam depth-service`) or "
+                               "run with --no-scale")
+
+    def close(self) -> None:
+        self._client.close()
+
+
+def _encode_png(image: np.ndarray) -> bytes:
+    if image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ImageError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)  # OpenCV writes BGR order
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ImageError("OpenCV could not PNG-encode the keyframe image")
+    return buf.tobytes()
+
+
+def _parse(response: httpx.Response) -> np.ndarray:
+    """JSON ``{"inv_depth_per_m": [[...]], ...}`` or an ``.npy`` body -> (h, w) float32."""
+    try:
+        if response.headers.get("content-type", "").startswith("application/x-npy"):
+            array = np.load(io.BytesIO(response.content), allow_pickle=False)
+            array = array[-1] if array.ndim == 3 else array
+        else:
+            array = np.asarray(response.json()["inv_depth_per_m"], dtype=np.float32)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DepthSourceError(f"depth service answered an unreadable body: {exc}") from None
+    if array.ndim != 2 or array.size == 0 or not np.all(np.isfinite(array)):
+        raise DepthSourceError(f"depth service answered a bad inverse-depth map, shape {array.shape}")
+    return array.astype(np.float32, copy=False)

@@ -1,0 +1,199 @@
+"""The SLAM service: Zenoh in, one SLAM session per camera, poses/keyframes/status out.
+
+Subscribes ``metricslam/*/frame``; each camera id gets a :class:`CameraWorker` (bounded
+drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every processed frame,
+``…/keyframe`` per keyframe, ``…/status`` every ``status_period_s``; answers the queryables
+``…/trajectory`` (whole current trajectory) and ``metricslam/_service/health`` (JSON).
+Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from metricslam.errors import CodecError, ServiceError
+from metricslam.wire import keys
+from metricslam.wire.codec import Message, TrajectoryMessage, encode
+from metricslam_slam.camera_worker import CameraWorker
+from metricslam_slam.sessions import SessionFactory, make_session_factory
+from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.zenoh_config import open_client
+
+log = logging.getLogger(__name__)
+
+
+class SlamService:
+    """Run with ``with SlamService(settings) as svc: svc.wait()`` (or ``start()``/``stop()``).
+
+    Args:
+        settings: service settings.
+        session_factory: overrides the factory built from ``settings`` (tests, embedding).
+        depth_source: overrides the HTTP depth source built from ``settings.depth_url``.
+    """
+
+    def __init__(self, settings: SlamServiceSettings, session_factory: SessionFactory | None = None,
+                 depth_source: object | None = None) -> None:
+        self.settings = settings
+        if depth_source is None and settings.use_scale and settings.depth_url and \
+                settings.session_kind == "pipeline":
+            from metricslam_slam.http_depth import HttpDepthSource
+            depth_source = HttpDepthSource(
+                settings.depth_url, timeout_s=settings.depth_timeout_s,
+                connect_timeout_s=settings.depth_connect_timeout_s,
+                retries=settings.depth_retries, backoff_s=settings.depth_backoff_s)
+        self.depth_source = depth_source
+        self._factory = session_factory or make_session_factory(
+            settings.session_kind, settings.preset, settings.use_scale, depth_source)
+        self._workers: dict[str, CameraWorker] = {}
+        self._workers_lock = threading.Lock()
+        self._stopped = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._entities: list = []
+        self._status_thread: threading.Thread | None = None
+        self.unrouted = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self, connect_timeout_s: float = 30.0) -> "SlamService":
+        log.info("SLAM service settings: %s", self.settings.model_dump())
+        deadline = time.monotonic() + connect_timeout_s
+        while True:  # the router may come up after us (compose, `up`)
+            try:
+                self._session = open_client(self.settings.zenoh_endpoint, self.settings.zenoh_mode)
+                break
+            except ServiceError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+        s = self._session
+        self._entities = [
+            s.declare_subscriber(keys.wildcard("frame"), self._on_frame),
+            s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
+            s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
+        ]
+        self._status_thread = threading.Thread(target=self._status_loop, name="slam-status", daemon=True)
+        self._status_thread.start()
+        log.info("SLAM service connected to %s; listening on %s", self.settings.zenoh_endpoint,
+                 keys.wildcard("frame"))
+        return self
+
+    def stop(self) -> None:
+        """Stop taking frames, finish queued ones, close sessions and the zenoh session."""
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        for entity in self._entities[:1]:
+            entity.undeclare()
+        with self._workers_lock:
+            workers = list(self._workers.values())
+        for worker in workers:
+            worker.close()
+        if self._status_thread is not None:
+            self._status_thread.join(5.0)
+        self._publish_status()
+        for entity in self._entities[1:]:
+            entity.undeclare()
+        if self._session is not None:
+            self._session.close()
+        close = getattr(self.depth_source, "close", None)
+        if callable(close):
+            close()
+        log.info("SLAM service stopped")
+
+    def __enter__(self) -> "SlamService":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until :meth:`stop` (from another thread or a signal handler)."""
+        return self._stopped.wait(timeout_s)
+
+    # -- inputs ------------------------------------------------------------------------------
+    def _worker(self, camera_id: str) -> CameraWorker:
+        with self._workers_lock:
+            worker = self._workers.get(camera_id)
+            if worker is None:
+                worker = CameraWorker(camera_id, self._factory,
+                                      lambda topic, msg, cid=camera_id: self._put(cid, topic, msg),
+                                      self.settings.queue_size, self.settings.keyframe_images)
+                self._workers[camera_id] = worker
+            return worker
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        try:
+            camera_id, _ = keys.parse_key(str(sample.key_expr))
+        except CodecError as exc:
+            self.unrouted += 1
+            if self.unrouted <= 5:
+                log.warning("dropped a frame on an unusable key: %s", exc)
+            return
+        if not self._stopped.is_set():
+            self._worker(camera_id).offer(sample.payload.to_bytes())
+
+    def _put(self, camera_id: str, topic: str, message: Message) -> None:
+        if self._session is None:
+            return
+        try:
+            self._session.put(keys.key(camera_id, topic), encode(message))
+        except zenoh.ZError as exc:  # session closing; nothing to do but note it
+            log.debug("publish on %s/%s failed: %s", camera_id, topic, exc)
+
+    # -- queryables --------------------------------------------------------------------------
+    def _on_trajectory_query(self, query: zenoh.Query) -> None:
+        try:
+            camera_id, _ = keys.parse_key(str(query.key_expr))
+        except CodecError as exc:
+            query.reply_err(str(exc).encode())
+            return
+        with self._workers_lock:
+            worker = self._workers.get(camera_id)
+        if worker is None:
+            query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())
+            return
+        poses = worker.trajectory()
+        n = len(poses)
+        message = TrajectoryMessage(
+            camera_id=camera_id, scale_established=bool(poses and poses[-1].scale_established),
+            frame_index=np.array([p.frame_index for p in poses], dtype=np.int64),
+            t_ns=np.array([p.t_ns for p in poses], dtype=np.int64),
+            T_world_cam=np.array([p.T_world_cam for p in poses], dtype=np.float64).reshape(n, 4, 4),
+            state_code=TrajectoryMessage.state_codes([p.state for p in poses]))
+        query.reply(keys.key(camera_id, "trajectory"), encode(message))
+
+    def _on_health_query(self, query: zenoh.Query) -> None:
+        query.reply(keys.HEALTH_KEY, json.dumps(self.health()).encode())
+
+    def health(self) -> dict:
+        with self._workers_lock:
+            cameras = sorted(self._workers)
+        return {"ready": self._session is not None and not self._stopped.is_set(),
+                "cameras": cameras, "unrouted": self.unrouted,
+                "depth_url": self.settings.depth_url if self.depth_source is not None else None,
+                "depth_reachable": getattr(self.depth_source, "reachable", None)}
+
+    # -- status ------------------------------------------------------------------------------
+    def _status_loop(self) -> None:
+        while not self._stopped.wait(self.settings.status_period_s):
+            probe = getattr(self.depth_source, "probe", None)
+            if callable(probe):
+                probe()
+            self._publish_status()
+
+    def _publish_status(self) -> None:
+        depth_url = self.settings.depth_url if self.depth_source is not None else None
+        reachable = getattr(self.depth_source, "reachable", None)
+        error = getattr(self.depth_source, "last_error", None)
+        with self._workers_lock:
+            workers = list(self._workers.values())
+        for worker in workers:
+            try:
+                self._put(worker.camera_id, "status", worker.status(depth_url, reachable, error))
+            except Exception:  # status is best effort, never fatal
+                log.exception("status for camera %s failed", worker.camera_id)
