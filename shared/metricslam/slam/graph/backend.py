@@ -189,8 +189,10 @@ class GlobalBackend:
             for t in self._threads:
                 t.join(timeout=5.0)
         with self._lock:
+            self._flush_scales()
             try:
                 self.graph.solve(extra_iterations=max(self.config.extra_iterations, 5))
+                self._correction_ready = self._newest_kf is not None
             except GraphError as exc:
                 log.warning("final global solve failed: %s", exc)
 
