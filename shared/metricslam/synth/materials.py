@@ -1,7 +1,8 @@
 """Material table for the synthetic street world (gray-level appearance of each surface kind).
 
 A material is one row of :data:`MATERIALS` (float32): texture id, metres per texture tile, base
-gray level, texture contrast, procedural pattern id, procedural-noise amplitude. Objects add
+gray level, texture contrast, procedural pattern id, and a reserved column (detail noise is
+baked into the textures, see :mod:`metricslam.synth.textures`). Objects add
 three per-triangle parameters (``params``): a brightness gain and two pattern parameters whose
 meaning is given per pattern below.
 """

@@ -100,11 +100,30 @@ def _prepare(vert_w, R_cw, t_cw, fx, fy, cx, cy, width, height, near, far,
         valid[k] = True
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@nb.njit(inline="always")
+def _clip_interval(a, c, lo, hi):
+    """Intersect [lo, hi] with {x : a·x + c <= 0}."""
+    if a > 0.0:
+        hi = min(hi, -c / a)
+    elif a < 0.0:
+        lo = max(lo, -c / a)
+    elif c > 0.0:
+        hi = lo - 1.0
+    return lo, hi
+
+
+@nb.njit(parallel=True, cache=True)
 def _raster(vis, v0c, nc, g1, g2, bbox, fx, fy, cx, cy, near, far, depth, tri_id, bary):
-    """Z-buffer visible triangles; rows are split in bands so threads never share a pixel."""
+    """Z-buffer visible triangles; rows are split in bands so threads never share a pixel.
+
+    On a row the ray is ``d = (x, y, 1)`` with ``x = (u - cx)/fx``; the hit's barycentrics are
+    ``b_i = num_i(x) / den(x)`` with numerator and denominator linear in ``x``, so the pixels
+    inside the triangle form one interval per row, found without testing every pixel of the
+    bounding box.
+    """
     height, width = depth.shape
     n_bands = (height + _BAND_ROWS - 1) // _BAND_ROWS
+    eps = 1e-9
     for band in nb.prange(n_bands):
         r0 = band * _BAND_ROWS
         r1 = min(height, r0 + _BAND_ROWS) - 1
@@ -114,29 +133,43 @@ def _raster(vis, v0c, nc, g1, g2, bbox, fx, fy, cx, cy, near, far, depth, tri_id
                 continue
             n0, n1, n2 = nc[k, 0], nc[k, 1], nc[k, 2]
             nv0 = n0 * v0c[k, 0] + n1 * v0c[k, 1] + n2 * v0c[k, 2]
+            q1 = v0c[k, 0] * g1[k, 0] + v0c[k, 1] * g1[k, 1] + v0c[k, 2] * g1[k, 2]
+            q2 = v0c[k, 0] * g2[k, 0] + v0c[k, 1] * g2[k, 1] + v0c[k, 2] * g2[k, 2]
+            # num_i(x) = nv0·(g_i·d) − den(x)·(v0·g_i) = a_i·x + c_i(y)
+            a1 = nv0 * g1[k, 0] - q1 * n0
+            a2 = nv0 * g2[k, 0] - q2 * n0
+            u_lo = bbox[k, 0]
+            u_hi = bbox[k, 1]
             for v in range(max(r0, bbox[k, 2]), min(r1, bbox[k, 3]) + 1):
                 y = (v - cy) / fy
-                for u in range(bbox[k, 0], bbox[k, 1] + 1):
+                cden = n1 * y + n2
+                c1 = nv0 * (g1[k, 1] * y + g1[k, 2]) - q1 * cden
+                c2 = nv0 * (g2[k, 1] * y + g2[k, 2]) - q2 * cden
+                # den < 0 (front), num1 <= 0, num2 <= 0, den - num1 - num2 <= 0 (den < 0)
+                lo = (u_lo - 0.5 - cx) / fx
+                hi = (u_hi + 0.5 - cx) / fx
+                lo, hi = _clip_interval(n0, cden, lo, hi)
+                lo, hi = _clip_interval(a1, c1, lo, hi)
+                lo, hi = _clip_interval(a2, c2, lo, hi)
+                lo, hi = _clip_interval(n0 - a1 - a2, cden - c1 - c2, lo, hi)
+                if lo > hi:
+                    continue
+                u0 = max(u_lo, int(np.ceil(fx * lo + cx - eps)))
+                u1 = min(u_hi, int(np.floor(fx * hi + cx + eps)))
+                for u in range(u0, u1 + 1):
                     x = (u - cx) / fx
-                    dn = n0 * x + n1 * y + n2
+                    dn = n0 * x + cden
                     if dn >= 0.0:
                         continue
                     z = nv0 / dn
                     if z < near or z > far or z >= depth[v, u]:
                         continue
-                    wx = z * x - v0c[k, 0]
-                    wy = z * y - v0c[k, 1]
-                    wz = z - v0c[k, 2]
-                    b1 = wx * g1[k, 0] + wy * g1[k, 1] + wz * g1[k, 2]
-                    if b1 < 0.0:
-                        continue
-                    b2 = wx * g2[k, 0] + wy * g2[k, 1] + wz * g2[k, 2]
-                    if b2 < 0.0 or b1 + b2 > 1.0:
-                        continue
+                    b1 = (a1 * x + c1) / dn
+                    b2 = (a2 * x + c2) / dn
                     depth[v, u] = z
                     tri_id[v, u] = k
-                    bary[v, u, 0] = b1
-                    bary[v, u, 1] = b2
+                    bary[v, u, 0] = min(max(b1, 0.0), 1.0)
+                    bary[v, u, 1] = min(max(b2, 0.0), 1.0)
 
 
 class Renderer:

@@ -166,9 +166,7 @@ def shade(depth, tri_id, bary, uv, mat, par, normal_w, materials, tex_data, tex_
             base = materials[m, 2]
             contrast = materials[m, 3]
             pattern = int(materials[m, 4])
-            noise_amp = materials[m, 5]
             c = base + contrast * (_texture(tex_data, tex_off, tex_size, tex, s_m, t_m, mpt, fp) - 0.5)
-            c += noise_amp * (_texture_fast(tex_data, tex_off, tex_size, 5, t_m, s_m, mpt * 0.37, fp) - 0.5) * 4.0
             gain = par[k, 0]
             if pattern == PATTERN_LANES:
                 cover = _lanes(s_m, t_m, par[k, 1], fp)

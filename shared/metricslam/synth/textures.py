@@ -87,6 +87,9 @@ def build_atlas(seed: int = 0) -> TextureAtlas:
     brick = _resize(skdata.brick(), _SIZE)
     grass = _resize(skdata.grass(), _SIZE)
     moon = _resize(skdata.moon(), _SIZE)
+    # fine detail baked into every texture at 3x the tile frequency: corners at more scales
+    # without a second texture lookup per pixel
+    detail = _normalize(_resize(np.tile(_fractal_noise(rng, _SIZE), (3, 3)), _SIZE))
     textures = [
         _normalize(0.7 * _normalize(gravel) + 0.3 * _normalize(noise)),  # asphalt
         _normalize(brick),
@@ -95,6 +98,8 @@ def build_atlas(seed: int = 0) -> TextureAtlas:
         _normalize(0.5 * _normalize(moon) + 0.5 * _normalize(noise[::-1])),  # concrete
         _normalize(noise),
     ]
+    textures = [_normalize(t + 0.25 * (detail - 0.5) / 0.18) if k != TEX_NOISE else t
+                for k, t in enumerate(textures)]
     pyramids = [_mips(t) for t in textures]
     n_levels = len(pyramids[0])
     offset = np.zeros((len(textures), n_levels), np.int64)

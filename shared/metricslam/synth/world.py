@@ -139,9 +139,9 @@ def _free_of_other_parts(tree: cKDTree, pts: np.ndarray, s_all: np.ndarray, cent
 
 
 def _terrain(mb: MeshBuilder, pts: np.ndarray, cfg: WorldConfig) -> None:
-    """Coarse fallback ground under everything within ``verge_width_m + 40`` m of the path, so
+    """Coarse fallback ground under everything within ``verge_width_m + 90`` m of the path, so
     no gap between ribbons (at crossings) ever shows the void."""
-    reach = cfg.verge_width_m + 40.0
+    reach = cfg.verge_width_m + 90.0
     lo = pts[:, [0, 2]].min(axis=0) - reach
     hi = pts[:, [0, 2]].max(axis=0) + reach
     gx = np.arange(lo[0], hi[0] + _TERRAIN_CELL_M, _TERRAIN_CELL_M)
@@ -241,7 +241,7 @@ def _objects(mb: MeshBuilder, pts: np.ndarray, tangent: np.ndarray, w: float, sw
                 brick = rng.random() < 0.55
                 params = (float(rng.uniform(0.75, 1.25)), float(rng.uniform(1.8, 3.4)),
                           float(rng.uniform(0.08, 0.35)))
-                mb.add_box(centre + UP * kerb_h, t, width, depth, -3.0, height,
+                mb.add_box(centre + UP * kerb_h, t, width, depth, -8.0, height,
                            mt.FACADE_BRICK if brick else mt.FACADE_PLASTER, params,
                            top_material=mt.ROOF, uv_offset=(float(rng.uniform(0, 50)), 0.0))
             s += width + (float(rng.uniform(2.0, 10.0)) if rng.random() < 0.25
