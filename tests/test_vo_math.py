@@ -202,3 +202,32 @@ def test_inverse_depth_triangulation_is_exact_without_noise() -> None:
     rho, parallax = triangulate_inverse_depth(Th, Tt, P.lm_bearing[lm], xy)
     good = parallax > np.radians(0.5)
     np.testing.assert_allclose(rho[good], P.lm_rho[lm][good], rtol=1e-6)
+
+
+def test_batched_lie_matches_geometry_helpers() -> None:
+    from metricslam.slam.vo import lie
+    rng = np.random.default_rng(9)
+    xi = np.concatenate([rng.normal(0, 1.0, (20, 3)), rng.normal(0, 5.0, (20, 3))], axis=1)
+    xi[:3, :3] *= 1e-7  # the small-angle series
+    T = lie.exp(xi)
+    for k in range(20):
+        np.testing.assert_allclose(T[k], se3.exp(xi[k]), atol=1e-10)
+        np.testing.assert_allclose(lie.log(T[k:k + 1])[0], se3.log(T[k]), atol=1e-8)
+    np.testing.assert_allclose(lie.local(T[:10], T[10:]),
+                               np.array([se3.local(a, b) for a, b in zip(T[:10], T[10:])]), atol=1e-8)
+
+
+def test_gauge_basis_spans_the_hessian_null_space_and_is_projected_out() -> None:
+    from metricslam.slam.vo.marginalization import gauge_basis, project_out_gauge
+    P = make_window(6, n_kf=4, n_per_kf=30).problem
+    lin = linearize(P, 1e3)
+    from metricslam.slam.vo.marginalization import eliminate_landmarks
+    S, _ = eliminate_landmarks(lin)
+    N = gauge_basis(P.T_world_kf)
+    assert np.linalg.norm(S @ N) < 1e-6 * np.linalg.norm(S) * np.linalg.norm(N)
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(24, 24))
+    prior = project_out_gauge(Prior(A @ A.T, rng.normal(size=24), P.T_world_kf))
+    assert np.abs(prior.H @ N).max() < 1e-9 * np.abs(prior.H).max()
+    assert np.abs(N.T @ prior.b).max() < 1e-9
+    assert np.linalg.matrix_rank(prior.H) == 24 - 7

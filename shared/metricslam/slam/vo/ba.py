@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from metricslam.geometry import se3, so3
+from metricslam.geometry import so3
+from metricslam.slam.vo import lie
 from metricslam.slam.vo.linear_system import WindowProblem, linearize, total_cost
 
 #: inverse depths are kept above this fraction of the median (points at infinity are fine,
@@ -68,8 +69,7 @@ def solve_reduced(Hpp: np.ndarray, Hpl: np.ndarray, Hll: np.ndarray, bp: np.ndar
 
 
 def _apply_step(problem: WindowProblem, dp: np.ndarray, dl: np.ndarray) -> WindowProblem:
-    T = np.array([orthonormalized(se3.retract(Ti, dp[6 * i:6 * i + 6]))
-                  for i, Ti in enumerate(problem.T_world_kf)])
+    T = lie.retract(problem.T_world_kf, dp.reshape(-1, 6))
     rho = problem.lm_rho + dl
     floor = _MIN_RHO_FRACTION * max(float(np.median(np.abs(problem.lm_rho))), 1e-12) \
         if len(rho) else 0.0

@@ -56,6 +56,19 @@ class LandmarkMap:
         self.landmarks[lm.lm_id] = lm
         return lm
 
+    def add_many(self, lm_ids: np.ndarray, host_kf: int, uv_px: np.ndarray,
+                 rho: np.ndarray | None = None) -> list[Landmark]:
+        """Vectorized :meth:`add` for (N,) ids and (N, 2) host pixels (``rho`` None: no depth)."""
+        uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+        xy = self.camera.normalized(uv) if len(uv) else np.zeros((0, 2))
+        out = []
+        for k, lid in enumerate(lm_ids):
+            lm = Landmark(int(lid), int(host_kf), uv[k].copy(), np.array([xy[k, 0], xy[k, 1], 1.0]),
+                          rho=1.0 if rho is None else float(rho[k]), has_depth=rho is not None)
+            self.landmarks[lm.lm_id] = lm
+            out.append(lm)
+        return out
+
     def children(self, kf_id: int) -> list[Landmark]:
         return [lm for lm in self.landmarks.values() if lm.host_kf == kf_id]
 

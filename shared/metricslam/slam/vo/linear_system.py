@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from metricslam.geometry import se3
+from metricslam.slam.vo import lie
 from metricslam.slam.vo.reprojection import huber_cost, huber_weights, project
 
 
@@ -40,8 +40,9 @@ class Prior:
 
     def deltas(self, T_world_kf: np.ndarray) -> np.ndarray:
         """Stacked ``δ`` (6n,) of poses (n, 4, 4) from the linearization point."""
-        return np.concatenate([se3.local(a, b) for a, b in zip(self.T_lin, T_world_kf)]) \
-            if len(T_world_kf) else np.zeros(0)
+        if len(T_world_kf) == 0:
+            return np.zeros(0)
+        return lie.local(self.T_lin, np.asarray(T_world_kf)).reshape(-1)
 
     def cost(self, T_world_kf: np.ndarray) -> float:
         if not np.any(self.H) and not np.any(self.b):

@@ -36,7 +36,7 @@ from metricslam.slam.vo.frontend import KLTFrontend
 from metricslam.slam.vo.initializer import try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
 from metricslam.slam.vo.linear_system import Prior, residuals
-from metricslam.slam.vo.marginalization import marginalize_pose, rescale_prior
+from metricslam.slam.vo.marginalization import marginalize_pose, project_out_gauge, rescale_prior
 from metricslam.slam.vo.motion_only import estimate_pose
 from metricslam.slam.vo.reprojection import triangulate_inverse_depth
 
@@ -318,12 +318,12 @@ class LocalVO:
             tr = self.frontend.tracks
             pos = {int(i): k for k, i in enumerate(tr.ids)}
             ref_pos = {int(i): k for k, i in enumerate(ref.ids)}
-            for lid, rho in zip(res.ids, res.rho_ref):
-                lm = self.map.add(int(lid), kf0.kf_id, ref.uv_px[ref_pos[int(lid)]], rho / baseline)
-                lm.obs[kf1.kf_id] = tr.uv_px[pos[int(lid)]].copy()
+            uv0 = np.array([ref.uv_px[ref_pos[int(i)]] for i in res.ids])
+            for lm in self.map.add_many(res.ids, kf0.kf_id, uv0, res.rho_ref / baseline):
+                lm.obs[kf1.kf_id] = tr.uv_px[pos[lm.lm_id]].copy()
             self.frontend.drop(np.setdiff1d(tr.ids, res.ids))
-            for lid, uv in zip(*self._detect(gray)):
-                self.map.add(int(lid), kf1.kf_id, uv)
+            new_ids, new_uv = self._detect(gray)
+            self.map.add_many(new_ids, kf1.kf_id, new_uv)
             self._snapshot_kf_tracks()
             self._tracking = True
             self._T_world_last = T_world_cur
@@ -454,8 +454,8 @@ class LocalVO:
                 for lid in bad:
                     del self.map.landmarks[lid]
                 self.frontend.drop(np.array(bad, dtype=np.int64))
-            for lid, uv in zip(*self._detect(gray)):
-                self.map.add(int(lid), kf.kf_id, uv)
+            new_ids, new_uv = self._detect(gray)
+            self.map.add_many(new_ids, kf.kf_id, new_uv)
             self._snapshot_kf_tracks()
         if self._queue is not None:
             self._queue.put("solve")
@@ -553,7 +553,7 @@ class LocalVO:
         if len(kf_ids) > 1:
             problem, _ = self.map.problem(kf_ids, T, self._window_prior(kf_ids, T),
                                           only_hosts={kf.kf_id})
-            self._prior = marginalize_pose(problem, 0, cfg.huber_px)
+            self._prior = project_out_gauge(marginalize_pose(problem, 0, cfg.huber_px))
             self._prior_ids = kf_ids[1:]
         else:
             self._prior, self._prior_ids = None, []

@@ -88,3 +88,42 @@ def rescale_prior(prior: Prior, S_new_old: np.ndarray) -> Prior:
         T[:3, :3] = R @ T[:3, :3]
         T[:3, 3] = s * R @ T[:3, 3] + t
     return Prior(prior.H * d[:, None] * d[None, :], prior.b * d, T_lin)
+
+
+def gauge_basis(T_world_kf: np.ndarray) -> np.ndarray:
+    """(6n, 7) tangent directions of a global similarity applied to poses (n, 4, 4).
+
+    Column ``k < 3``: rotation about world axis ``k``; ``3..5``: translation; ``6``: scale. In
+    right-perturbation tangents pose ``i`` moves by ``[R_iᵀ ω, R_iᵀ (ω × t_i + v + λ t_i)]``.
+    """
+    n = len(T_world_kf)
+    N = np.zeros((6 * n, 7))
+    for i, T in enumerate(T_world_kf):
+        R, t = T[:3, :3], T[:3, 3]
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1.0
+            N[6 * i:6 * i + 3, k] = R.T @ e
+            N[6 * i + 3:6 * i + 6, k] = R.T @ np.cross(e, t)
+            N[6 * i + 3:6 * i + 6, 3 + k] = R.T @ e
+        N[6 * i + 3:6 * i + 6, 6] = R.T @ t
+    return N
+
+
+def project_out_gauge(prior: Prior) -> Prior:
+    """Remove the prior's information along the 7 gauge directions at its linearization point.
+
+    Exact marginalization of a gauge-invariant cost gives a prior with no information along
+    the similarity directions at *its* linearization point; after later relinearizations those
+    directions move, old priors keep spurious information there (the inconsistency FEJ avoids)
+    and it showed up as monocular scale drift. The window's gauge is fixed by holding its
+    oldest pose, so nothing is lost by projecting: ``H ← P H P``, ``b ← P b`` with ``P`` the
+    orthogonal projector onto the complement of the gauge directions.
+    """
+    if len(prior.T_lin) == 0:
+        return prior
+    N = gauge_basis(prior.T_lin)
+    Q, _ = np.linalg.qr(N)
+    P = np.eye(N.shape[0]) - Q @ Q.T
+    H = P @ prior.H @ P
+    return Prior(0.5 * (H + H.T), P @ prior.b, prior.T_lin)

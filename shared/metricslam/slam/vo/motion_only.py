@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from metricslam.geometry import se3
-from metricslam.slam.vo.ba import orthonormalized
+from metricslam.slam.vo import lie
 from metricslam.slam.vo.reprojection import huber_weights, project
 
 
@@ -43,7 +42,7 @@ def estimate_pose(T_world_cam: np.ndarray, p_world: np.ndarray, uv_px: np.ndarra
             dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
         except np.linalg.LinAlgError:
             break
-        T = orthonormalized(se3.retract(T, dx))
+        T = lie.retract(T[None], dx[None])[0]
         if np.linalg.norm(dx) < 1e-8:
             break
     pr = project(eye, np.repeat(T[None], n, axis=0), p_world, rho, uv_px, K, with_jacobians=False)
