@@ -14,7 +14,8 @@ from metricslam.geometry import se3, sim3
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import LoopDetector
 
-CONFIG = LoopConfig(skip_recent_keyframes=8, vocabulary_train_keyframes=6, vocabulary_words=200)
+CONFIG = LoopConfig(skip_recent_keyframes=8, vocabulary_train_keyframes=6, vocabulary_words=200,
+                    keyframe_stride=1)
 
 
 def _landmarks(frame) -> tuple[np.ndarray, np.ndarray]:

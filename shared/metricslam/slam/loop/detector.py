@@ -1,6 +1,7 @@
 """``LoopDetector``: per keyframe, ORB bag-of-words retrieval then geometric verification.
 
-Candidates are keyframes older than the ``skip_recent_keyframes`` most recent ones whose cosine
+Candidates are keyframes older than the ``skip_recent_keyframes`` most recent indexed ones (every
+``keyframe_stride``-th keyframe is indexed) whose cosine
 score reaches ``min_score_ratio`` times the score of the query against its immediate predecessor
 (DBoW2's normalization: what "similar" means depends on the scene), best first, at most
 ``n_candidates``; each is verified with :func:`metricslam.slam.loop.verification.verify`.
@@ -36,7 +37,8 @@ class LoopDetector:
 
     def __init__(self, config: LoopConfig | None = None, seed: int = 0) -> None:
         self.config = config or LoopConfig()
-        self._orb = cv2.ORB_create(nfeatures=self.config.n_orb_features, fastThreshold=12)
+        self._calls = 0
+        self._orb = cv2.ORB_create(nfeatures=self.config.n_orb_features, nlevels=4, fastThreshold=12)
         self._orb_landmarks = cv2.ORB_create(nlevels=1)
         self._vocab: BinaryVocabulary | None = None
         self._db: BowDatabase | None = None
@@ -50,7 +52,14 @@ class LoopDetector:
 
     def add_and_query(self, kf_id: int, image: np.ndarray, camera: PinholeCamera,
                       landmarks_uv_px: np.ndarray, landmarks_inv_depth: np.ndarray) -> list[LoopCandidate]:
-        """Add keyframe ``kf_id`` and return verified loops to older keyframes (maybe empty)."""
+        """Add keyframe ``kf_id`` and return verified loops to older keyframes (maybe empty).
+
+        Only every ``keyframe_stride``-th call does any work (consecutive keyframes see nearly
+        the same place; a revisit spans many keyframes).
+        """
+        self._calls += 1
+        if (self._calls - 1) % self.config.keyframe_stride:
+            return []
         gray = to_gray_u8(image)
         f = self.config.image_scale
         # retrieval: ORB detection costs per pixel, so it runs on a downscaled image; landmark
