@@ -1,0 +1,105 @@
+"""Full ``metricslam run`` with learned scale vs ``--no-scale``, evaluated with ``metricslam eval``.
+
+For each sequence folder (KITTI layout: ``image_0/``, ``calib.txt``, ``times.txt``, ground truth
+in ``--gt``), runs both variants as separate processes, then the evaluator, and tabulates scale
+error (Sim(3) alignment scale), ATE with SE(3) alignment only (% of path length), t_rel, fps
+(frames / wall time of the run, depth inference included), keyframes, scale factors and the
+loops detected (input frame pairs).
+
+Example::
+
+    .venv/bin/python bench/metric_slam.py \\
+        --seq kitti06=/work/shared/data/kitti_odometry/sequences/06:/work/shared/data/kitti_odometry/poses/06.txt \\
+        --out bench/results/metric_slam
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
+
+
+def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, extra: list[str]) -> dict:
+    tag = f"{name}_{'noscale' if no_scale else 'scale'}"
+    est, stats, metrics = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json", workdir / f"{tag}_eval.json"
+    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats)] + extra
+    if no_scale:
+        cmd.append("--no-scale")
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return {"name": tag, "error": proc.stderr[-2000:], "command": " ".join(cmd)}
+    ev = subprocess.run(METRICSLAM + ["eval", "--gt", gt, "--est", str(est), "--json", str(metrics)],
+                        capture_output=True, text=True)
+    if ev.returncode != 0:
+        return {"name": tag, "error": ev.stderr[-2000:], "command": " ".join(cmd)}
+    m = json.loads(metrics.read_text())
+    m = m[0] if isinstance(m, list) else m
+    m = m.get("metrics", m) if isinstance(m, dict) else m
+    s = json.loads(stats.read_text())
+    n = m.get("n_frames") or s.get("frames")
+    path = m.get("path_length_m") or float("nan")
+    return {
+        "name": tag, "command": " ".join(cmd[2:]), "wall_s": wall, "stats": s, "metrics": m,
+        "fps_wall": n / wall if n else None,
+        "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seq", action="append", required=True, metavar="NAME=SEQ_DIR:GT.txt")
+    p.add_argument("--out", help="write OUT.md and OUT.json")
+    p.add_argument("--keep", help="keep estimates in this folder")
+    p.add_argument("--extra", default="", help="extra arguments for metricslam run")
+    args = p.parse_args(argv)
+    workdir = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="metric_slam_"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for spec in args.seq:
+        name, rest = spec.split("=", 1)
+        seq_dir, gt = rest.rsplit(":", 1)
+        for no_scale in (False, True):
+            r = run_one(name, seq_dir, gt, no_scale, workdir, args.extra.split())
+            print(json.dumps({k: v for k, v in r.items() if k != "stats"}, default=str)[:2000], flush=True)
+            rows.append(r)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+        out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
+                                                        "command": " ".join(sys.argv)}, indent=2, default=str))
+        lines = ["# Metric SLAM: learned scale vs --no-scale", "",
+                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ",
+                 f"Machine: {machine} (2 cores shared with other jobs while measured)", "",
+                 "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | fps | keyframes | scale factors | loops |",
+                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for r in rows:
+            if "error" in r:
+                lines.append(f"| {r['name']} | failed: {r['error'][-200:]!r} |")
+                continue
+            m, s = r["metrics"], r["stats"]
+            back = s.get("backend", s)
+            loops = back.get("loops", [])
+            lines.append(
+                f"| {r['name']} | {m.get('n_frames')} | {m.get('path_length_m', float('nan')):.0f} | "
+                f"{m.get('scale_ratio', float('nan')):.3f} | {m.get('scale_error_pct', float('nan')):.1f} | "
+                f"{m.get('ate_rmse_m', float('nan')):.2f} | {r['ate_pct_of_path'] or float('nan'):.2f} | "
+                f"{m.get('t_rel_pct', float('nan')):.2f} | {r['fps_wall'] or float('nan'):.1f} | "
+                f"{back.get('keyframes', '?')} | {back.get('scale_factors', '?')} | {len(loops)} {loops[:6]} |")
+        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
