@@ -169,6 +169,19 @@ def test_depth_is_metric_on_the_road() -> None:
     np.testing.assert_allclose(p_world[:, 1], 1.65 + world_mod._SINK_PER_M * arc_m, atol=1e-6)
 
 
+def test_motion_blur_blurs_images_not_depth() -> None:
+    blur = PhotometricConfig(noise_sigma=0.0, vignetting=0.0, motion_blur_samples=4)
+    sharp = SynthScene.procedural(5, seed=3, path="straight", config=_clean_config(160, 48))
+    blurred = SynthScene.procedural(5, seed=3, path="straight",
+                                    config=SynthConfig(width_px=160, height_px=48, photometric=blur))
+    a, b = sharp.frame(2), blurred.frame(2)
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
+    assert np.abs(a.left.astype(int) - b.left.astype(int)).mean() > 0.5
+    # blur averages neighbouring views: less high-frequency energy than the sharp image
+    lap = [np.abs(cv2.Laplacian(f.left, cv2.CV_32F)).mean() for f in (a, b)]
+    assert lap[1] < lap[0]
+
+
 def test_procedural_paths() -> None:
     for kind in trj.PATH_KINDS:
         T = trj.procedural(kind, 300, seed=1)

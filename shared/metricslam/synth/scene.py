@@ -144,6 +144,8 @@ def generate_sequence(out_dir: str | Path, frames: int, seed: int, trajectory: s
 
     if frames < 1:
         raise SynthError(f"--frames must be >= 1, got {frames}")
+    if start and trajectory is None:
+        raise SynthError("--start only applies to --trajectory (a KITTI pose file)")
     cfg = (config or SynthConfig()).model_copy(update={"width_px": int(size[0]), "height_px": int(size[1])})
     cfg = SynthConfig.model_validate(cfg.model_dump())
     T = (trj.kitti_segment(trajectory, frames, start) if trajectory is not None
