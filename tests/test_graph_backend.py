@@ -148,3 +148,28 @@ def test_no_scale_backend_never_touches_depth():
     assert not backend.scale_established and backend.stats()["scale_factors"] == 0
     est = backend.optimized_keyframe_poses()
     assert sim3.scale(est[0]) == pytest.approx(1.0, abs=1e-6)  # VO units of the first keyframe
+
+
+def test_new_tracking_segment_is_linked_loosely_and_keeps_scale():
+    """After a tracking loss the VO restarts from its last pose (new segment_id)."""
+    import dataclasses
+
+    n = 40
+    T = circle_path(n, 30.0, turns=0.4)
+    vo = SimulatedVO(T, drift_per_kf=0.0, seed=4)
+    backend = GlobalBackend(GraphConfig(inline=True), depth_source=SyntheticDepthSource(n))
+    for k in range(n):
+        kf = vo.next_keyframe()
+        if k >= 20:
+            kf = dataclasses.replace(kf, segment_id=1)
+        backend.on_keyframe_marginalized(kf)
+        S = backend.take_correction()
+        if S is not None:
+            vo.apply_similarity(S)
+    backend.close()
+    assert backend.stats()["keyframes"] == n
+    est = backend.optimized_keyframe_poses()
+    p_err = np.linalg.norm(np.array([est[k][:3, 3] for k in range(n)]) - T[:, :3, 3], axis=1)
+    assert p_err.max() < 2.0
+    s_err = np.abs(np.array([sim3.scale(est[k]) for k in range(n)]) / np.array(vo.sigma_at_kf) - 1)
+    assert s_err.max() < 0.05

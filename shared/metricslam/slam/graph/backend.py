@@ -211,6 +211,7 @@ class GlobalBackend:
                 "depth_failures": self._stats["depth_failures"],
                 "depth_dropped": self._stats["depth_dropped"],
                 "corrections": self._stats["corrections"],
+                "segment_links": self._stats["segment_links"],
                 "depth_ms_mean": _mean(self._depth_ms),
                 "solve_ms_mean": _mean(self._solve_ms),
                 "solve_ms_max": float(max(self._solve_ms)) if self._solve_ms else 0.0,
@@ -253,10 +254,15 @@ class GlobalBackend:
             self.graph.add_keyframe(rec.kf_id, guess, prev_id, S_prev_k, info)
         elif self._newest_kf is None:
             self.graph.add_keyframe(rec.kf_id, S_vo0_kf)
-        else:  # new tracking segment: loose prior near the last known pose until a loop links it
-            guess = self.graph.estimate(self._newest_kf)
-            self.graph.add_keyframe(rec.kf_id, guess,
-                                    prior_sigmas=np.array([0.3] * 3 + [10.0] * 3 + [1.0]))
+        else:  # new tracking segment: the VO restarts from its last known pose, so link it to
+            # the newest keyframe by a loose relative factor (a loop can tighten it later)
+            last = self._records[self._newest_kf]
+            S_prev_k = relative_sim3(last.S_vo0_kf, S_vo0_kf)
+            guess = self.graph.estimate(last.kf_id) @ S_prev_k
+            t_len = float(np.linalg.norm(S_prev_k[:3, 3]))
+            sig = np.array([0.2] * 3 + [max(t_len, 5.0 * last.step_length)] * 3 + [0.5])
+            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_prev_k, np.diag(1.0 / sig**2))
+            self._stats["segment_links"] += 1
         self._records[rec.kf_id] = rec
         self._last_of_segment[rec.segment_id] = rec.kf_id
         self._newest_kf = rec.kf_id
