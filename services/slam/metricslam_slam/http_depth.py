@@ -1,7 +1,7 @@
 """``HttpDepthSource``: the depth service over HTTP, as a :class:`metricslam.slam.depth_source.DepthSource`.
 
 ``inv_depth_map(image, camera)`` PNG-encodes the keyframe image, ``POST``s it to
-``{url}/v1/disparity?fx=<fx_px>`` and returns the service's metric inverse depth (h, w) float32
+``{url}/v1/disparity?fx=<fx_px>`` (``Accept: application/x-npy``) and returns the service's metric inverse depth (h, w) float32
 (1/m) for that camera, covering the whole image. Connection failures, timeouts and 5xx/429 are
 retried a bounded number of times with a short backoff, then :class:`DepthSourceError` is raised —
 the global back end treats that as "no scale factor for this keyframe" and tracking goes on.
@@ -89,7 +89,7 @@ class HttpDepthSource:
         """
         body = _encode_png(image)
         params = {"fx": f"{camera.fx_px:.6f}"}
-        headers = {"Content-Type": "image/png", "Accept": "application/json"}
+        headers = {"Content-Type": "image/png", "Accept": "application/x-npy"}
         error = "no attempt"
         for attempt in range(self.retries + 1):
             if attempt:
@@ -134,11 +134,13 @@ def _encode_png(image: np.ndarray) -> bytes:
 
 
 def _parse(response: httpx.Response) -> np.ndarray:
-    """JSON ``{"inv_depth_per_m": [[...]], ...}`` or an ``.npy`` body -> (h, w) float32."""
+    """``.npy`` (2, h, w) [d_frac, inv_depth_per_m] or JSON ``{"inv_depth_per_m": ...}`` -> (h, w)."""
     try:
-        if response.headers.get("content-type", "").startswith("application/x-npy"):
+        if response.content[:6] == b"\x93NUMPY":
             array = np.load(io.BytesIO(response.content), allow_pickle=False)
-            array = array[-1] if array.ndim == 3 else array
+            if array.ndim != 3 or array.shape[0] != 2:
+                raise ValueError(f"expected a (2, h, w) stack, got {array.shape}")
+            array = array[1]
         else:
             array = np.asarray(response.json()["inv_depth_per_m"], dtype=np.float32)
     except (ValueError, KeyError, TypeError) as exc:

@@ -53,6 +53,7 @@ class SlamService:
         self._workers: dict[str, CameraWorker] = {}
         self._workers_lock = threading.Lock()
         self._stopped = threading.Event()
+        self._stop_requested = threading.Event()
         self._session: zenoh.Session | None = None
         self._entities: list = []
         self._status_thread: threading.Thread | None = None
@@ -60,6 +61,7 @@ class SlamService:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self, connect_timeout_s: float = 30.0) -> "SlamService":
+        logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per probe is noise
         log.info("SLAM service settings: %s", self.settings.model_dump())
         deadline = time.monotonic() + connect_timeout_s
         while True:  # the router may come up after us (compose, `up`)
@@ -87,6 +89,7 @@ class SlamService:
         if self._stopped.is_set():
             return
         self._stopped.set()
+        self._stop_requested.set()
         for entity in self._entities[:1]:
             entity.undeclare()
         with self._workers_lock:
@@ -111,9 +114,13 @@ class SlamService:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def request_stop(self) -> None:
+        """Ask :meth:`wait` to return (safe from a signal handler); then call :meth:`stop`."""
+        self._stop_requested.set()
+
     def wait(self, timeout_s: float | None = None) -> bool:
-        """Block until :meth:`stop` (from another thread or a signal handler)."""
-        return self._stopped.wait(timeout_s)
+        """Block until :meth:`request_stop` or :meth:`stop`; True if asked to stop."""
+        return self._stop_requested.wait(timeout_s)
 
     # -- inputs ------------------------------------------------------------------------------
     def _worker(self, camera_id: str) -> CameraWorker:

@@ -1,7 +1,8 @@
 """Builds one :class:`metricslam.slam.types.SlamSession` per camera for the service.
 
-``pipeline``: the real SLAM core (``SlamPipeline`` + the global back end, fed by the HTTP depth
-source when scale is on). ``identity``: transport only — every frame gets the identity pose;
+``pipeline``: the real SLAM core (``SlamPipeline`` + the global back end with loop closure; with
+scale on, learned scale factors from ``depth_source`` — the HTTP depth service — or, when that is
+None, the in-process ONNX model). ``identity``: transport only — every frame gets the identity pose;
 used to measure the service's Zenoh/queue overhead without the VO cost.
 """
 
@@ -53,6 +54,7 @@ def make_session_factory(kind: str, preset: str = "kitti", use_scale: bool = Tru
     if kind != "pipeline":
         raise ServiceError(f"unknown session kind {kind!r}; use 'pipeline' or 'identity'")
     try:
+        from metricslam.slam.backend_factory import make_backend
         from metricslam.slam.pipeline import SlamPipeline
         from metricslam.slam.vo.config import VOConfig
     except ImportError as exc:
@@ -61,16 +63,7 @@ def make_session_factory(kind: str, preset: str = "kitti", use_scale: bool = Tru
     vo_config = VOConfig.preset(preset)
 
     def factory(camera_id: str, camera: PinholeCamera) -> SlamSession:
-        backend = None
-        try:
-            from metricslam.slam.backend_factory import make_backend
-        except ImportError:
-            make_backend = None
-        if make_backend is not None:
-            backend = make_backend(camera, use_scale=use_scale and depth_source is not None,
-                                   depth_source=depth_source)
-        elif use_scale:
-            raise ServiceError("metric mode needs metricslam.slam.backend_factory; run with --no-scale")
+        backend = make_backend(camera, use_scale=use_scale, depth_source=depth_source)
         return SlamPipeline(camera, vo_config, backend=backend)
 
     return factory

@@ -23,6 +23,10 @@ COMMANDS: dict[str, str] = {
     "synth": "metricslam.cli.synth_cmd",
     "depth-service": "metricslam.cli.depth_service_cmd",
     "run": "metricslam.cli.run_cmd",
+    "slam-service": "metricslam.cli.slam_service_cmd",
+    "up": "metricslam.cli.up_cmd",
+    "replay": "metricslam.cli.replay_cmd",
+    "poses": "metricslam.cli.poses_cmd",
 }
 
 log = logging.getLogger("metricslam")

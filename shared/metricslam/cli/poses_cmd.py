@@ -1,0 +1,50 @@
+"""``metricslam poses``: record the live pose stream of one camera to a trajectory file.
+
+Example::
+
+    metricslam poses --zenoh-endpoint tcp/127.0.0.1:7447 --out est.txt --frames 300 --timeout 120
+
+Writes one line per frame in frame order (KITTI: 3x4 ``T_world_cam`` row-major; TUM:
+``t tx ty tz qx qy qz qw``). ``--trajectory`` writes the service's optimized trajectory
+(queried at the end) instead of the live poses. Fails if fewer than ``--frames`` poses arrived.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "poses", help="record live poses from zenoh into a KITTI/TUM file",
+        description="Subscribes to metricslam/<camera_id>/pose until --frames poses arrived or "
+        "--timeout passed, and writes them in frame order.")
+    p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP")
+    p.add_argument("--out", required=True, metavar="FILE")
+    p.add_argument("--frames", type=int, required=True, metavar="N", help="poses to wait for")
+    p.add_argument("--timeout", type=float, default=120.0, metavar="S")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti")
+    p.add_argument("--camera-id", default="cam0", metavar="ID")
+    p.add_argument("--trajectory", action="store_true",
+                   help="write the optimized trajectory (queried at the end) instead of live poses")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from metricslam_slam.client import PoseRecorder, query_trajectory
+    from metricslam_slam.recording import write_poses
+    from metricslam_slam.zenoh_config import open_client
+
+    session = open_client(args.zenoh_endpoint)
+    try:
+        recorder = PoseRecorder(session, args.camera_id)
+        print(f"recording metricslam/{args.camera_id}/pose ...", flush=True)
+        recorder.wait_frames(args.frames, args.timeout)
+        recorder.close()
+        trajectory = query_trajectory(session, args.camera_id) if args.trajectory else None
+    finally:
+        session.close()
+    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames)
+    print(f"wrote {n_written} poses to {args.out}")
+    return 0

@@ -1,0 +1,58 @@
+"""``metricslam slam-service``: the SLAM service over Zenoh.
+
+Example::
+
+    metricslam slam-service --zenoh-endpoint tcp/127.0.0.1:7447 --depth-url http://127.0.0.1:8100
+
+Subscribes ``metricslam/*/frame``; publishes ``…/pose`` (every frame), ``…/keyframe``,
+``…/status``; answers ``…/trajectory``. Flags override ``SLAM_*`` environment variables.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "slam-service", help="run the SLAM service (zenoh in/out, one session per camera)",
+        description="Runs one SLAM session per camera id seen on metricslam/<id>/frame and "
+        "publishes poses, keyframes and status over Zenoh. Flags override SLAM_* env variables.")
+    p.add_argument("--zenoh-endpoint", metavar="EP", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--depth-url", metavar="URL", help="depth service base URL ('none': in-process model)")
+    p.add_argument("--no-scale", action="store_true", help="no learned scale factors (baseline)")
+    p.add_argument("--preset", help="VO preset (kitti, euroc, tum, synth)")
+    p.add_argument("--queue-size", type=int, help="frames buffered per camera (drop-oldest)")
+    p.add_argument("--session", dest="session_kind", choices=("pipeline", "identity"),
+                   help="pipeline (default) or identity (transport only, for benchmarks)")
+    p.add_argument("--status-period", dest="status_period_s", type=float, metavar="S",
+                   help="seconds between status messages")
+    p.add_argument("--keyframe-images", action="store_true", default=None,
+                   help="attach images to keyframe messages")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import signal
+
+    from metricslam_slam.service import SlamService
+    from metricslam_slam.settings import SlamServiceSettings
+
+    overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "preset", "queue_size",
+                                                 "session_kind", "status_period_s", "keyframe_images")
+                 if getattr(args, k) is not None}
+    if args.depth_url is not None:
+        overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
+    if args.no_scale:
+        overrides["use_scale"] = False
+    service = SlamService(SlamServiceSettings(**overrides))
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: service.request_stop())
+    service.start()
+    print("READY", flush=True)
+    try:
+        service.wait()
+    finally:
+        service.stop()
+    return 0
