@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from metricslam.errors import DepthSourceError, GraphError, MetricSlamError
+from metricslam.errors import GraphError, MetricSlamError
 from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
 from metricslam.slam.graph.config import GraphConfig
