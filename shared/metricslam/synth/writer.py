@@ -58,7 +58,9 @@ class KittiWriter:
         import cv2
 
         name = f"{index:06d}.png"
-        flags = [cv2.IMWRITE_PNG_COMPRESSION, self._png]
+        # RLE strategy: faster than the default and smaller on these images (measured)
+        flags = [cv2.IMWRITE_PNG_COMPRESSION, self._png,
+                 cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
         for sub, img in (("image_0", left), ("image_1", right), ("depth_0", encode_depth(depth_m))):
             if not cv2.imwrite(str(self.out / sub / name), img, flags):
                 raise SynthError(f"could not write {self.out / sub / name}; check disk space")
