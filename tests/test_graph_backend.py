@@ -173,3 +173,30 @@ def test_new_tracking_segment_is_linked_loosely_and_keeps_scale():
     assert p_err.max() < 2.0
     s_err = np.abs(np.array([sim3.scale(est[k]) for k in range(n)]) / np.array(vo.sigma_at_kf) - 1)
     assert s_err.max() < 0.05
+
+
+def test_keyframe_delivered_after_a_correction_is_placed_in_its_own_epoch():
+    """Race of a threaded VO: a keyframe queued before a correction, delivered after it."""
+    n = 60
+    T = circle_path(n, 40.0, turns=0.5)
+    vo = SimulatedVO(T, drift_per_kf=0.01, sigma0=3.0, seed=7)
+    backend = GlobalBackend(GraphConfig(inline=True), depth_source=SyntheticDepthSource(n))
+    outbox = []
+    for k in range(n):
+        outbox.append(vo.next_keyframe())  # marginalized now ...
+        S = backend.take_correction()
+        if S is not None:
+            vo.apply_similarity(S)
+        if k % 3 == 2:  # ... but delivered in bursts, after corrections were applied
+            for kf in outbox:
+                backend.on_keyframe_marginalized(kf)
+            outbox.clear()
+    for kf in outbox:
+        backend.on_keyframe_marginalized(kf)
+    backend.close()
+    assert backend.stats()["epoch_mismatches"] == 0
+    est = backend.optimized_keyframe_poses()
+    s_err = np.abs(np.array([sim3.scale(est[k]) for k in range(n)]) / np.array(vo.sigma_at_kf) - 1)
+    assert s_err.max() < 0.04
+    p_err = np.linalg.norm(np.array([est[k][:3, 3] for k in range(n)]) - T[:, :3, 3], axis=1)
+    assert p_err.max() < 2.5

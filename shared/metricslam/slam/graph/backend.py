@@ -36,6 +36,7 @@ from metricslam.slam.graph.odometry import (
     odometry_information,
     orthonormalize,
     relative_sim3,
+    resolve_epoch,
 )
 from metricslam.slam.graph.scale_factor import scale_measurements
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
@@ -212,6 +213,7 @@ class GlobalBackend:
                 "depth_dropped": self._stats["depth_dropped"],
                 "corrections": self._stats["corrections"],
                 "segment_links": self._stats["segment_links"],
+                "epoch_mismatches": self._stats["epoch_mismatches"],
                 "depth_ms_mean": _mean(self._depth_ms),
                 "solve_ms_mean": _mean(self._solve_ms),
                 "solve_ms_max": float(max(self._solve_ms)) if self._solve_ms else 0.0,
@@ -243,9 +245,18 @@ class GlobalBackend:
 
     def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
         """Insert one keyframe (odometry or prior), then query loops. Caller holds the lock."""
-        S_vo0_kf = self.history.to_epoch0(kf.T_vo_kf, epoch)
+        prev_id = self._last_of_segment.get(int(kf.segment_id))
+        if prev_id is not None:
+            prev = self._records[prev_id]
+            epoch, S_vo0_kf, consistent = resolve_epoch(self.history, prev.S_vo0_kf, prev.epoch,
+                                                        kf.T_vo_kf, kf.T_prevkf_kf, epoch)
+            if kf.T_prevkf_kf is not None and not consistent:
+                self._stats["epoch_mismatches"] += 1
+                log.warning("keyframe %d: T_vo_kf matches no recent VO frame; using the newest",
+                            kf.kf_id)
+        else:
+            S_vo0_kf = self.history.to_epoch0(kf.T_vo_kf, epoch)
         rec = _KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, S_vo0_kf)
-        prev_id = self._last_of_segment.get(rec.segment_id)
         if prev_id is not None:
             S_prev_k = relative_sim3(self._records[prev_id].S_vo0_kf, S_vo0_kf)
             guess = self.graph.estimate(prev_id) @ S_prev_k

@@ -82,6 +82,38 @@ def relative_sim3(S_vo0_j: np.ndarray, S_vo0_k: np.ndarray) -> np.ndarray:
     return orthonormalize(sim3.inverse(S_vo0_j) @ S_vo0_k)
 
 
+def resolve_epoch(
+    history: VoFrameHistory, S_vo0_j: np.ndarray, epoch_j: int, T_vo_kf: np.ndarray,
+    T_prevkf_kf: np.ndarray | None, epoch_now: int, max_back: int = 3, tol: float = 1e-5,
+) -> tuple[int, np.ndarray, bool]:
+    """The epoch keyframe ``k`` was *marginalized* in, which may precede its delivery.
+
+    A VO that marginalizes in a worker thread can queue a keyframe, receive a correction, and
+    deliver the keyframe afterwards: its ``T_vo_kf`` is then in the previous frame. The VO's own
+    ``T_prevkf_kf`` (relative to keyframe ``j``, frame-independent up to units) tells which
+    epoch is consistent: for epoch ``e`` the odometry from ``T_vo_kf`` must equal ``T_prevkf_kf``
+    scaled by ``scale(C_{e_j}) / scale(C_e)``. Tries ``epoch_now, epoch_now − 1, …``.
+
+    Returns:
+        ``(epoch_k, S_vo0_k, consistent)``; with ``consistent=False`` (no ``T_prevkf_kf`` or no
+        epoch matches) ``epoch_now`` is used.
+    """
+    S_now = history.to_epoch0(T_vo_kf, epoch_now)
+    if T_prevkf_kf is None:
+        return epoch_now, S_now, False
+    T_p = np.asarray(T_prevkf_kf, dtype=float)
+    s_j = sim3.scale(history.C(epoch_j))
+    for e in range(epoch_now, max(epoch_j, epoch_now - max_back) - 1, -1):
+        S_k = S_now if e == epoch_now else history.to_epoch0(T_vo_kf, e)
+        r = s_j / sim3.scale(history.C(e))
+        S_expected = orthonormalize(sim3.from_rts(T_p[:3, :3], r * T_p[:3, 3], r))
+        S_rel = relative_sim3(S_vo0_j, S_k)
+        err = float(np.linalg.norm(sim3.local(S_expected, S_rel)))
+        if err < tol * (1.0 + float(np.linalg.norm(S_rel[:3, 3]))):
+            return e, S_k, True
+    return epoch_now, S_now, False
+
+
 def odometry_sigmas(S_j_k: np.ndarray, config: GraphConfig) -> np.ndarray:
     """Diagonal sigmas (7,) ``[ω, u, λ]`` for an odometry measurement ``S_j_k``.
 

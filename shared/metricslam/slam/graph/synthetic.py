@@ -65,6 +65,7 @@ class SimulatedVO:
         self.T_vo_cur = np.eye(4)
         self.k = 0
         self.sigma_at_kf: list[float] = []  # metres per keyframe unit, per keyframe (truth)
+        self.T_last_marg: np.ndarray | None = None  # warped by corrections, like the real VO
 
     def apply_similarity(self, S_new_vo: np.ndarray) -> None:
         """Apply a correction from the back end to the VO state (frame and units)."""
@@ -72,6 +73,9 @@ class SimulatedVO:
         T = self.T_vo_cur
         self.T_vo_cur = se3.from_rt(R_s @ T[:3, :3], s * R_s @ T[:3, 3] + t_s)
         self.sigma /= s
+        if self.T_last_marg is not None:
+            T = self.T_last_marg
+            self.T_last_marg = se3.from_rt(R_s @ T[:3, :3], s * R_s @ T[:3, 3] + t_s)
 
     def next_keyframe(self) -> MarginalizedKeyframe:
         k = self.k
@@ -95,8 +99,10 @@ class SimulatedVO:
                                                             dtype=np.uint8)
         self.sigma_at_kf.append(self.sigma)
         self.k += 1
+        T_prev = None if self.T_last_marg is None else se3.inverse(self.T_last_marg) @ self.T_vo_cur
+        self.T_last_marg = self.T_vo_cur.copy()
         return MarginalizedKeyframe(kf_id=k, frame_index=k, t_ns=k * 100_000_000, segment_id=0,
-                                    T_vo_kf=self.T_vo_cur.copy(), T_prevkf_kf=None,
+                                    T_vo_kf=self.T_vo_cur.copy(), T_prevkf_kf=T_prev,
                                     landmarks_uv_px=uv, landmarks_inv_depth=xi, image=image, camera=cam)
 
 
