@@ -89,7 +89,8 @@ class VOConfig(BaseModel):
 
 _PRESETS: dict[str, dict[str, Any]] = {
     # 1226x370 at 10 Hz, ~1 m/frame forward motion: many corners, wide grid.
-    "kitti": dict(max_features=500, grid_cols=16, grid_rows=4, keyframe_motion_px=25.0),
+    "kitti": dict(max_features=500, grid_cols=16, grid_rows=4, keyframe_motion_px=30.0,
+                  keyframe_min_track_ratio=0.3),
     # 752x480 at 20 Hz, handheld/MAV: more rotation, fewer pixels.
     "euroc": dict(max_features=300, grid_cols=8, grid_rows=6, keyframe_motion_px=20.0,
                   init_min_motion_px=15.0),
