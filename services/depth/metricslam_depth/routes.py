@@ -11,6 +11,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
+from starlette.requests import ClientDisconnect
 
 from metricslam.depth import ModelContract
 
@@ -155,11 +156,17 @@ async def _read_body(request: Request, limit: int, what: str) -> bytes:
     """The whole body, refusing (413) as soon as more than ``limit`` bytes arrive."""
     chunks: list[bytes] = []
     size = 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise _too_large(limit, what)
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise _too_large(limit, what)
+            chunks.append(chunk)
+    except ClientDisconnect:
+        raise RequestProblem(
+            400, "incomplete-body", "Request body incomplete",
+            f"the connection closed after {size} bytes of the {what}; send the whole body.",
+        ) from None
     return b"".join(chunks)
 
 
