@@ -145,8 +145,7 @@ class CameraWorker:
         stats: dict = {}
         if self._session is not None:
             try:
-                stats = {k: v for k, v in self._session.stats().items()
-                         if isinstance(v, (int, float, str, bool)) or v is None}
+                stats = _flatten(self._session.stats())
             except Exception:  # stats are best effort
                 log.exception("camera %s: session.stats failed", self.camera_id)
         return StatusMessage(
@@ -168,3 +167,16 @@ class CameraWorker:
         with self._session_lock:
             if self._session is not None:
                 self._session.close()
+
+
+def _flatten(stats: dict, prefix: str = "") -> dict:
+    """Nested stats -> ``{"a.b": scalar}``; lists and other non-scalars are left out."""
+    flat: dict = {}
+    for k, v in stats.items():
+        if isinstance(v, dict):
+            flat.update(_flatten(v, f"{prefix}{k}."))
+        elif isinstance(v, np.generic) and v.ndim == 0:
+            flat[f"{prefix}{k}"] = v.item()
+        elif isinstance(v, (bool, int, float, str)) or v is None:
+            flat[f"{prefix}{k}"] = v
+    return flat

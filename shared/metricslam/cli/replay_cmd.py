@@ -24,7 +24,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (0: as fast as possible)")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
-    p.add_argument("--max-frames", type=int, metavar="N", help="publish only the first N frames")
+    p.add_argument("--start", type=int, default=0, metavar="K", help="first frame to publish")
+    p.add_argument("--max-frames", type=int, metavar="N", help="publish at most N frames")
     p.add_argument("--max-in-flight", type=int, default=0, metavar="N",
                    help="back-pressure: publish frame i only once poses of all but N earlier "
                    "frames arrived (0: off, a pure fixed-rate stream)")
@@ -48,7 +49,9 @@ def run(args: argparse.Namespace) -> int:
     if args.rate < 0:
         raise ConfigError(f"--rate must be >= 0, got {args.rate}")
     seq = open_sequence(args.seq_dir)
-    n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
+    if not 0 <= args.start < len(seq):
+        raise ConfigError(f"--start must be in [0, {len(seq) - 1}], got {args.start}")
+    stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
     session = open_client(args.zenoh_endpoint)
     try:
         if args.wait > 0:
@@ -62,14 +65,16 @@ def run(args: argparse.Namespace) -> int:
         recorder = PoseRecorder(session, args.camera_id) if args.max_in_flight > 0 else None
         period_s = 0.0 if args.rate == 0 else 1.0 / args.rate
         t_start = time.monotonic()
-        for i in tqdm(range(n), desc=f"replay {args.camera_id}", unit="frame", disable=args.no_progress):
+        for k, i in enumerate(tqdm(range(args.start, stop), desc=f"replay {args.camera_id}",
+                                   unit="frame", disable=args.no_progress)):
             frame = seq[i]
             if period_s:
-                delay = t_start + i * period_s - time.monotonic()
+                delay = t_start + k * period_s - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
             if recorder is not None:  # bounded wait: a dropped frame must not stall the replay
-                recorder.wait_for(lambda r: len(r.poses) >= i - args.max_in_flight, timeout_s=10.0)
+                recorder.wait_for(lambda r: sum(j >= args.start for j in r.poses) >= k - args.max_in_flight,
+                                  timeout_s=10.0)
             publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)
         publisher.close()
         if recorder is not None:
