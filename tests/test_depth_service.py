@@ -318,7 +318,7 @@ def test_unloadable_model_keeps_service_unready_with_reason(tmp_path):
 def test_overload_is_refused_with_retry_after_not_queued_forever():
     big = _png(np.random.default_rng(0).integers(0, 255, (1024, 2048), dtype=np.uint8))
     files = [("images", (f"{i}.png", big, "image/png")) for i in range(8)]
-    settings_ = {"max_concurrency": 1, "max_queue": 2, "request_timeout_s": 0.01, "threads": 1,
+    settings_ = {"max_concurrency": 1, "max_queue": 2, "request_timeout_s": 0.05, "threads": 1,
                  "retry_after_s": 3}
     with ServiceProcess(PORT_OVERLOAD, settings=settings_) as svc:
         def call(_: int) -> httpx.Response:
@@ -368,3 +368,18 @@ def test_settings_come_from_environment_and_refuse_bad_values(monkeypatch):
     monkeypatch.setenv("DEPTH_MAX_QUEUE", "lots")
     with pytest.raises(ConfigError, match="DEPTH_MAX_QUEUE"):
         load_settings()
+
+
+@pytest.mark.parametrize("kind", ["png16", "rgba", "progressive-jpeg", "colour-jpeg"])
+def test_decoder_normalises_to_uint8_gray(kind):
+    rng = np.random.default_rng(1)
+    gray16 = rng.integers(0, 65535, (60, 80), dtype=np.uint16)
+    rgba = rng.integers(0, 255, (60, 80, 4), dtype=np.uint8)
+    data, media = {
+        "png16": (lambda: (_png(gray16), "image/png")),
+        "rgba": (lambda: (_png(rgba), "image/png")),
+        "progressive-jpeg": (lambda: (cv2.imencode(".jpg", rgba[:, :, :3], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes(), "image/jpeg")),
+        "colour-jpeg": (lambda: (_jpeg(rgba[:, :, :3]), "image/jpeg")),
+    }[kind]()
+    image = decode_image(data, media, max_pixels=10**6)
+    assert image.dtype == np.uint8 and image.shape == (60, 80)
