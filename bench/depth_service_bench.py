@@ -221,10 +221,19 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | server CPU ms/req | client CPU ms/req | statuses |",
         "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
+    cpu_ms = float(np.mean([r.server_cpu_s / r.requests * 1e3 for r in results])) if results else float("nan")
     for r in results:
         lines.append(f"| {r.clients} | {r.form} | {r.requests} | {r.rps:.1f} | {r.pct(50):.1f} | "
                      f"{r.pct(90):.1f} | {r.pct(99):.1f} | {r.server_cpu_s / r.requests * 1e3:.1f} | "
                      f"{r.client_cpu_s / r.requests * 1e3:.1f} | {r.statuses} |")
+    if results:
+        lines += [
+            "",
+            f"Server CPU per request is the contention-robust number: {cpu_ms:.1f} ms on average, so a "
+            f"server with all {os.cpu_count()} cores to itself could not exceed about "
+            f"{os.cpu_count() * 1000 / cpu_ms:.0f} req/s here (an upper bound derived from CPU time, "
+            "not a measurement; CPU time itself is inflated by the sharing).",
+        ]
     if soak:
         lines += [
             "",
