@@ -21,7 +21,7 @@ import numpy as np
 
 from metricslam.geometry import so3
 from metricslam.slam.vo import lie
-from metricslam.slam.vo.linear_system import WindowProblem, linearize, total_cost
+from metricslam.slam.vo.linear_system import WindowProblem, linearize
 
 #: inverse depths are kept above this fraction of the median (points at infinity are fine,
 #: negative depth is not)
@@ -102,12 +102,11 @@ def bundle_adjust(problem: WindowProblem, huber_px: float, iterations: int,
         Hll = lin.Hll * (1.0 + lam) + 1e-9
         dp, dl = solve_reduced(Hpp, lin.Hpl, Hll, lin.bp, lin.bl, free)
         candidate = _apply_step(current, dp, dl)
-        new_cost = total_cost(candidate, huber_px)
-        if np.isfinite(new_cost) and new_cost < lin.cost:
-            current = candidate
-            converged = (lin.cost - new_cost) < 1e-6 * max(lin.cost, 1e-12)
+        cand_lin = linearize(candidate, huber_px)  # its cost decides; reused when accepted
+        if np.isfinite(cand_lin.cost) and cand_lin.cost < lin.cost:
+            converged = (lin.cost - cand_lin.cost) < 1e-6 * max(lin.cost, 1e-12)
+            current, lin = candidate, cand_lin
             lam = max(lam / 3.0, 1e-7)
-            lin = linearize(current, huber_px)
             if converged:
                 break
         else:

@@ -39,7 +39,8 @@ class KLTFrontend:
         self.ids = np.zeros(0, dtype=np.int64)
         self.uv_px = np.zeros((0, 2))
         self._win = (config.klt_window_px, config.klt_window_px)
-        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.klt_max_iterations,
+                          0.03)
 
     @property
     def tracks(self) -> Tracks:

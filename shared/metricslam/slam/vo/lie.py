@@ -45,11 +45,27 @@ def exp(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def _so3_log(R: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 3) rotation vectors; closed form, scipy near θ = π."""
+    c = np.clip(0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0), -1.0, 1.0)
+    theta = np.arccos(c)
+    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    small = theta < _SMALL
+    near_pi = theta > np.pi - 1e-3
+    ok = ~small & ~near_pi
+    k = np.where(small, 0.5 + theta**2 / 12.0, 0.0)
+    k[ok] = theta[ok] / (2.0 * np.sin(theta[ok]))
+    w = k[:, None] * vee
+    if np.any(near_pi):
+        w[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+    return w
+
+
 def log(T: np.ndarray) -> np.ndarray:
     """(N, 4, 4) -> (N, 6) ``[ω, v]``."""
     T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
     R, t = T[:, :3, :3], T[:, :3, 3]
-    w = Rotation.from_matrix(R).as_rotvec()  # robust for all angles, including near π
+    w = _so3_log(R)
     theta = np.linalg.norm(w, axis=1)
     A, B, _ = _coefficients(theta)
     small = theta < _SMALL

@@ -75,6 +75,8 @@ class WindowProblem:
     obs_uv_px: np.ndarray
     K: np.ndarray
     prior: Prior | None = field(default=None)
+    #: cached summation plans (depend only on the structure; shared by ``with_values`` copies)
+    plans: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_poses(self) -> int:
@@ -138,18 +140,24 @@ def linearize(problem: WindowProblem, huber_px: float) -> Linearization:
     tt = np.einsum("nki,nkj->nij", WJt, Jt).reshape(-1, 36)
     ht = np.einsum("nki,nkj->nij", WJh, Jt)
     th = np.transpose(ht, (0, 2, 1)).reshape(-1, 36)
-    # one sorted segment-sum instead of np.add.at (much faster for (n, n, 6, 6) targets)
-    keys = np.concatenate([host * n + host, tgt * n + tgt, host * n + tgt, tgt * n + host])
+    # sorted segment sums with a cached plan (much faster than np.add.at on (n, n, 6, 6))
+    if "pp" not in P.plans:
+        P.plans["pp"] = SumPlan(np.concatenate([host * n + host, tgt * n + tgt, host * n + tgt,
+                                                tgt * n + host]), n * n)
+        P.plans["p"] = SumPlan(np.concatenate([host, tgt]), n)
+        P.plans["lm"] = SumPlan(P.obs_lm, m)
     vals = np.concatenate([hh, tt, ht.reshape(-1, 36), th])
-    Hpp = segment_sum(keys, vals, n * n).reshape(n, n, 6, 6).transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+    Hpp = P.plans["pp"].sum(vals).reshape(n, n, 6, 6).transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
 
-    keys_pl = np.concatenate([host * m + P.obs_lm, tgt * m + P.obs_lm])
-    Hpl3 = segment_sum(keys_pl, np.concatenate([JhWJr, JtWJr]), n * m).reshape(n, m, 6)
+    # a landmark's host block sums over its observations; each (target, landmark) is unique
+    Hpl3 = np.zeros((n, m, 6))
+    Hpl3[P.lm_host, np.arange(m)] = P.plans["lm"].sum(JhWJr)
+    Hpl3[tgt, P.obs_lm] += JtWJr
     Hpl = Hpl3.transpose(0, 2, 1).reshape(6 * n, m)
 
     Hll = np.bincount(P.obs_lm, weights=w * np.sum(Jr * Jr, axis=1), minlength=m)
     bl = np.bincount(P.obs_lm, weights=w * np.sum(Jr * r, axis=1), minlength=m)
-    bp = segment_sum(np.concatenate([host, tgt]), np.concatenate([JhWr, JtWr]), n).reshape(6 * n)
+    bp = P.plans["p"].sum(np.concatenate([JhWr, JtWr])).reshape(6 * n)
 
     cost = float(np.sum(np.where(proj.valid, huber_cost(r, huber_px), 4.0 * huber_px * 100.0)))
     if P.prior is not None:
@@ -160,16 +168,22 @@ def linearize(problem: WindowProblem, huber_px: float) -> Linearization:
     return Linearization(Hpp, Hpl, Hll, bp, bl, cost)
 
 
-def segment_sum(keys: np.ndarray, values: np.ndarray, n_keys: int) -> np.ndarray:
-    """Sum rows of ``values`` (K, d) that share a key in ``[0, n_keys)``: returns (n_keys, d)."""
-    out = np.zeros((n_keys, values.shape[1]))
-    if len(keys) == 0:
+class SumPlan:
+    """Sums rows of (K, d) arrays that share a key in ``[0, n_keys)`` (sort once, reuse)."""
+
+    def __init__(self, keys: np.ndarray, n_keys: int) -> None:
+        self.n_keys = n_keys
+        self.order = np.argsort(keys, kind="stable")
+        k = keys[self.order]
+        self.starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]]) if len(k) else np.zeros(0, int)
+        self.targets = k[self.starts] if len(k) else np.zeros(0, int)
+
+    def sum(self, values: np.ndarray) -> np.ndarray:
+        """(K, d) -> (n_keys, d)."""
+        out = np.zeros((self.n_keys, values.shape[1]))
+        if len(self.order):
+            out[self.targets] = np.add.reduceat(values[self.order], self.starts, axis=0)
         return out
-    order = np.argsort(keys, kind="stable")
-    k = keys[order]
-    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-    out[k[starts]] = np.add.reduceat(values[order], starts, axis=0)
-    return out
 
 
 def dense_hessian(lin: Linearization) -> tuple[np.ndarray, np.ndarray]:
