@@ -93,7 +93,7 @@ def _http_ready(url: str) -> bool:
         return False
 
 
-def _slam_ready(endpoint: str) -> bool:
+def slam_ready(endpoint: str) -> bool:
     from metricslam_slam.client import query_health
     from metricslam_slam.zenoh_config import open_client
 
@@ -148,7 +148,7 @@ class Stack:
             slam.append("--no-scale")
         if preset:
             slam += ["--preset", preset]
-        self.children.append(Child("slam-service", slam, lambda: _slam_ready(zenoh_endpoint),
+        self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
                                    f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"))
         if log_dir:
             for child in self.children:

@@ -1,0 +1,24 @@
+# Depth inference service: FastAPI + onnxruntime + the shipped ONNX model. No torch, no gtsam.
+# Build from the repository root:  docker build -f deploy/depth.Dockerfile -t metricslam-depth .
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+WORKDIR /app
+
+# Only what the depth service imports (the project's full runtime set also pulls gtsam/zenoh).
+RUN pip install "numpy>=2.0,<3" "pydantic>=2.6" "pydantic-settings>=2.2" \
+        "opencv-python-headless>=4.9" "onnxruntime>=1.17" "fastapi>=0.110" \
+        "uvicorn[standard]>=0.29" "python-multipart>=0.0.9" "prometheus-client>=0.20" "tqdm>=4.66"
+
+COPY pyproject.toml README.md ./
+COPY shared/ shared/
+COPY services/ services/
+COPY training/metricslam_train/__init__.py training/metricslam_train/__init__.py
+RUN pip install --no-deps . && useradd --system --uid 10001 metricslam
+
+USER metricslam
+ENV DEPTH_HOST=0.0.0.0 DEPTH_PORT=8100 DEPTH_THREADS=1
+EXPOSE 8100
+HEALTHCHECK --interval=10s --timeout=3s --start-period=20s --retries=3 \
+    CMD ["python", "-c", "import os, sys, urllib.request; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:%s/readyz' % os.environ.get('DEPTH_PORT', '8100'), timeout=2).status == 200 else 1)"]
+ENTRYPOINT ["metricslam", "depth-service"]

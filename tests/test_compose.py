@@ -1,0 +1,119 @@
+"""The compose deployment, validated offline (no Docker engine here).
+
+* the compose file parses under the Compose specification (``compose-spec``: a strict,
+  typed parser — unknown keys, wrong types and dangling references are errors);
+* every build context, Dockerfile and COPY source exists;
+* images never install torch; settings in ``environment`` are real settings fields;
+* the long-running services have health checks; depth runs replicated behind the LB.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+compose_spec = pytest.importorskip("compose_spec", reason="pip install compose-spec (dev extra)")
+
+from metricslam_depth.settings import DepthServiceSettings  # noqa: E402
+from metricslam_slam.settings import SlamServiceSettings  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def compose(repo_root: Path) -> dict:
+    text = (repo_root / "docker-compose.yml").read_text()
+    parsed = compose_spec.PyCompose.from_yaml(text)
+    parsed.validate()
+    return yaml.safe_load(text)
+
+
+def _copy_sources(dockerfile: Path) -> list[str]:
+    sources = []
+    for line in dockerfile.read_text().splitlines():
+        if not line.split(maxsplit=1)[:1] or line.split(maxsplit=1)[0].upper() not in ("COPY", "ADD"):
+            continue
+        parts = shlex.split(line, comments=True)
+        if parts and parts[0].upper() in ("COPY", "ADD"):
+            args = [a for a in parts[1:] if not a.startswith("--")]
+            if any(a.startswith("--from") for a in parts[1:]):
+                continue
+            sources += args[:-1]
+    return sources
+
+
+def test_compose_file_is_valid_spec(compose: dict) -> None:
+    assert set(compose["services"]) == {"zenoh", "depth", "depth-lb", "slam"}
+    assert compose["services"]["zenoh"]["image"].startswith("eclipse/zenoh:")
+
+
+def test_strict_parser_rejects_a_broken_file(repo_root: Path) -> None:
+    text = (repo_root / "docker-compose.yml").read_text()
+    with pytest.raises(ValueError):
+        compose_spec.PyCompose.from_yaml(text.replace("restart: unless-stopped", "restart_policy: x", 1))
+    with pytest.raises(ValueError):
+        compose_spec.PyCompose.from_yaml(text.replace("replicas: 2", "replicas: two"))
+
+
+def test_builds_and_copy_sources_exist(compose: dict, repo_root: Path) -> None:
+    built = [s for s in compose["services"].values() if "build" in s]
+    assert len(built) == 2
+    for service in built:
+        context = repo_root / service["build"]["context"]
+        dockerfile = context / service["build"]["dockerfile"]
+        assert dockerfile.is_file(), dockerfile
+        text = dockerfile.read_text()
+        run_lines = [ln for ln in text.splitlines() if not ln.lstrip().startswith("#")]
+        assert not any("torch" in ln.lower() or "[train" in ln for ln in run_lines), dockerfile
+        assert "HEALTHCHECK" in text
+        sources = _copy_sources(dockerfile)
+        assert sources, f"{dockerfile} copies nothing"
+        for src in sources:
+            assert (context / src).exists(), f"{dockerfile.name}: COPY source {src} missing"
+    for service in compose["services"].values():
+        for volume in service.get("volumes", []):
+            host = volume.split(":")[0]
+            if host.startswith("."):
+                assert (repo_root / host).exists(), host
+
+
+def test_environment_names_are_settings_fields(compose: dict) -> None:
+    fields = {"SLAM_": set(SlamServiceSettings.model_fields), "DEPTH_": set(DepthServiceSettings.model_fields)}
+    seen = 0
+    for service in compose["services"].values():
+        for name in service.get("environment", {}):
+            for prefix, names in fields.items():
+                if name.startswith(prefix):
+                    assert name[len(prefix):].lower() in names, f"{name} is not a setting"
+                    seen += 1
+    assert seen >= 8
+
+
+def test_environment_builds_valid_settings(compose: dict, monkeypatch) -> None:
+    for name, value in compose["services"]["slam"]["environment"].items():
+        monkeypatch.setenv(name, str(value))
+    settings = SlamServiceSettings()
+    assert settings.zenoh_endpoint == "tcp/zenoh:7447" and settings.depth_url == "http://depth-lb:8100"
+
+
+def test_health_replicas_and_load_balancer(compose: dict, repo_root: Path) -> None:
+    services = compose["services"]
+    for name in ("depth", "depth-lb", "slam"):
+        assert "healthcheck" in services[name], name
+    assert services["depth"]["deploy"]["replicas"] >= 2
+    assert "ports" not in services["depth"]  # replicas are reached through the LB only
+    assert services["slam"]["depends_on"]["depth-lb"]["condition"] == "service_healthy"
+    nginx = (repo_root / "deploy" / "nginx-depth.conf").read_text()
+    assert re.search(r"server\s+depth:8100", nginx)
+    lb_url = services["slam"]["environment"]["SLAM_DEPTH_URL"]
+    assert lb_url.startswith("http://depth-lb:")
+
+
+def test_slam_healthcheck_fails_without_a_router() -> None:
+    out = subprocess.run([sys.executable, "-m", "metricslam_slam.healthcheck", "--zenoh-endpoint",
+                          "tcp/127.0.0.1:17499"], capture_output=True, timeout=60)
+    assert out.returncode == 1
