@@ -14,6 +14,7 @@ from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
 from metricslam.slam.graph.odometry import odometry_information, relative_sim3
 from metricslam.slam.graph.scale_factor import (
     log_scale_residual,
+    robust_log_scale,
     make_scale_factors,
     scale_measurements,
     scale_noise,
@@ -60,6 +61,18 @@ def test_scale_measurements_filter_and_ratio():
     assert s.size == 3 and np.all(np.isin(s, [2.0, 4.0, 2.0, 2.0]))
 
 
+def test_robust_log_scale_ignores_outliers_and_reports_curvature():
+    rng = np.random.default_rng(1)
+    x = np.log(2.0) + 0.1 * rng.normal(size=40)
+    bad = np.r_[x, np.log([20.0, 30.0, 0.01, 0.02])]  # 4 gross outliers (sky, wrong depth)
+    mu, sig = robust_log_scale(np.exp(bad), sigma_log=0.1, huber_k=1.345)
+    assert mu == pytest.approx(np.log(2.0), abs=0.05)
+    assert np.mean(x) - 0.05 < mu < np.mean(x) + 0.05
+    assert 0.1 / np.sqrt(44) < sig < 0.1 / np.sqrt(20)  # outliers add no curvature
+    with pytest.raises(ValueError):
+        robust_log_scale(np.array([]), 0.1, 1.345)
+
+
 def test_gtsam_conversion_round_trip():
     rng = np.random.default_rng(0)
     for _ in range(20):
@@ -69,9 +82,10 @@ def test_gtsam_conversion_round_trip():
         np.testing.assert_allclose(to_gtsam(S).transformFrom(p), sim3.transform_points(S, p), atol=1e-10)
 
 
-def _build(n: int, with_scale_factors: bool, drift: float = 0.02) -> tuple[GlobalPoseGraph, SimulatedVO]:
+def _build(n: int, with_scale_factors: bool, drift: float = 0.02,
+           mode: str = "per_keyframe") -> tuple[GlobalPoseGraph, SimulatedVO]:
     """Feed a drifting SimulatedVO straight into a graph (no corrections: VO units drift)."""
-    cfg = GraphConfig()
+    cfg = GraphConfig(scale_factor_mode=mode)
     T = circle_path(n, 60.0, turns=0.5)
     vo = SimulatedVO(T, drift_per_kf=drift, seed=3)
     src = SyntheticDepthSource(n, noise_log_sigma=0.05)
@@ -97,9 +111,10 @@ def _build(n: int, with_scale_factors: bool, drift: float = 0.02) -> tuple[Globa
     return graph, vo
 
 
-def test_scale_recovered_on_drifting_graph():
+@pytest.mark.parametrize("mode", ["per_keyframe", "per_landmark"])
+def test_scale_recovered_on_drifting_graph(mode):
     n = 60
-    graph, vo = _build(n, with_scale_factors=True)
+    graph, vo = _build(n, with_scale_factors=True, mode=mode)
     est = graph.estimates()
     s_est = np.array([sim3.scale(est[k]) for k in range(n)])
     s_true = np.array(vo.sigma_at_kf)
@@ -125,7 +140,8 @@ def _null_space_dim(graph: GlobalPoseGraph) -> int:
     return int(np.sum(eig < 1e-9 * eig.max()))
 
 
-@pytest.mark.parametrize("with_scale_factors,expected", [(False, 7), (True, 6)])
-def test_gauge_freedom(with_scale_factors, expected):
-    graph, _ = _build(8, with_scale_factors=with_scale_factors, drift=0.01)
+@pytest.mark.parametrize("with_scale_factors,expected,mode", [
+    (False, 7, "per_keyframe"), (True, 6, "per_keyframe"), (True, 6, "per_landmark")])
+def test_gauge_freedom(with_scale_factors, expected, mode):
+    graph, _ = _build(8, with_scale_factors=with_scale_factors, drift=0.01, mode=mode)
     assert _null_space_dim(graph) == expected

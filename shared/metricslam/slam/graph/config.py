@@ -41,6 +41,8 @@ class GraphConfig(BaseModel):
         odom_sigma_log_scale: odometry log-scale sigma per step (monocular scale drift).
         scale_sigma_log: sigma of one landmark's log-scale measurement ``log(ξ_j / z_j)``.
         scale_huber_k: Huber threshold ε_s on the whitened scale residual.
+        scale_factor_mode: "per_keyframe" (one factor at the keyframe's Huber M-estimate, default)
+            or "per_landmark" (eq. 13 literally); see :mod:`.scale_factor`.
         max_scale_landmarks: at most this many landmarks per keyframe give scale factors
             (the strongest-parallax ones are not known here, so an even subsample).
         min_inv_depth_per_m / max_inv_depth_per_m: network inverse depths outside are unusable.
@@ -67,6 +69,7 @@ class GraphConfig(BaseModel):
     use_vo_information: bool = False
     scale_sigma_log: float = Field(default=0.15, gt=0)
     scale_huber_k: float = Field(default=1.345, gt=0)
+    scale_factor_mode: str = Field(default="per_keyframe", pattern="^(per_keyframe|per_landmark)$")
     max_scale_landmarks: int = Field(default=48, gt=0)
     min_inv_depth_per_m: float = Field(default=1.0 / 80.0, gt=0)
     max_inv_depth_per_m: float = Field(default=1.0 / 1.5, gt=0)
@@ -77,8 +80,8 @@ class GraphConfig(BaseModel):
     loop_kernel_param: float = Field(default=2.0, gt=0)
     loop_reject_chi2: float = Field(default=50.0, gt=0)
     relinearize_threshold: float = Field(default=0.01, gt=0)
-    relinearize_skip: int = Field(default=1, ge=1)
-    extra_iterations: int = Field(default=2, ge=0)
+    relinearize_skip: int = Field(default=10, ge=1)
+    extra_iterations: int = Field(default=0, ge=0)
     depth_queue_size: int = Field(default=4, ge=1)
     min_scale_factors_established: int = Field(default=10, ge=1)
     inline: bool = False

@@ -7,6 +7,16 @@ network's metric inverse depth ``z_j`` (1/m) at the landmark's pixel measure the
 ``s_j`` and sigmas ``[1e4]*6 + [σ_log_s]`` — the λ component of ``Log(S_prior⁻¹ S)`` is exactly
 ``log(s / s_j)``, the other six are ~0 and carry ~no weight — behind a Huber kernel (ε_s).
 DESIGN.md measured this at 3–7 ms where Python ``CustomFactor``s were ~15x slower.
+
+Two modes (``GraphConfig.scale_factor_mode``):
+
+* ``"per_landmark"`` — eq. 13 literally: one Huber factor per landmark.
+* ``"per_keyframe"`` (default) — the landmark factors of keyframe ``i`` touch only ``s_i``, so
+  their sum is a 1-D robust cost in ``log s_i``; we minimize it in numpy (Huber IRLS, same σ and
+  ε_s) and add ONE Gaussian factor at the M-estimate with its curvature ``Σ w_j / σ²``. At the
+  joint optimum this differs only through where the Huber weights are evaluated; it keeps the
+  graph at one scale factor per keyframe (48x fewer factors), which is what keeps ISAM2's
+  per-keyframe cost flat at 10,000 keyframes (``bench/results/graph_scaling.md``).
 """
 
 from __future__ import annotations
@@ -43,6 +53,42 @@ def scale_measurements(
         idx = np.linspace(0, s.size - 1, config.max_scale_landmarks).round().astype(int)
         s = s[idx]
     return s
+
+
+def robust_log_scale(scales: np.ndarray, sigma_log: float, huber_k: float,
+                     iterations: int = 20) -> tuple[float, float]:
+    """Huber M-estimate of ``log s`` from per-landmark measurements (IRLS from the median).
+
+    Returns:
+        ``(log_s_hat, sigma_eff)`` with ``sigma_eff = σ / sqrt(Σ w_j)`` (the curvature of the
+        summed Huber cost at the estimate). Raises ``ValueError`` for an empty input.
+    """
+    x = np.log(np.asarray(scales, dtype=float).reshape(-1))
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        raise ValueError("no finite scale measurements")
+    mu = float(np.median(x))
+    w = np.ones_like(x)
+    for _ in range(iterations):
+        r = np.abs(x - mu) / sigma_log
+        w = np.where(r <= huber_k, 1.0, huber_k / np.maximum(r, 1e-12))
+        mu_new = float(np.sum(w * x) / np.sum(w))
+        if abs(mu_new - mu) < 1e-9:
+            mu = mu_new
+            break
+        mu = mu_new
+    r = np.abs(x - mu) / sigma_log
+    w_quad = (r <= huber_k).astype(float)  # curvature: only the quadratic part contributes
+    info = max(float(np.sum(w_quad)), 1.0)
+    return mu, sigma_log / float(np.sqrt(info))
+
+
+def make_keyframe_scale_factor(key: int, S_current: gtsam.Similarity3, scales: np.ndarray,
+                               config: GraphConfig) -> gtsam.PriorFactorSimilarity3:
+    """One Gaussian log-scale factor summarizing a keyframe's landmark measurements."""
+    log_s, sigma_eff = robust_log_scale(scales, config.scale_sigma_log, config.scale_huber_k)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA] * 6 + [sigma_eff]))
+    return gtsam.PriorFactorSimilarity3(key, with_scale(S_current, float(np.exp(log_s))), noise)
 
 
 def scale_noise(config: GraphConfig) -> gtsam.noiseModel.Base:

@@ -121,14 +121,22 @@ class GlobalPoseGraph:
                                                      to_gtsam(S_prev_kf), noise), "odometry")
 
     def add_scale_measurements(self, kf_id: int, scales: np.ndarray) -> int:
-        """Add one Huber log-scale factor per measurement ``s_j`` on keyframe ``kf_id``."""
+        """Add the log-scale measurements ``s_j`` of keyframe ``kf_id`` (one Huber factor each,
+        or their per-keyframe M-estimate; ``GraphConfig.scale_factor_mode``). Returns how many
+        measurements were used."""
         if not self.has(kf_id):
             raise GraphError(f"scale factors for unknown keyframe {kf_id}; add the keyframe first")
         s = np.asarray(scales, dtype=float).reshape(-1)
         s = s[np.isfinite(s) & (s > 0)]
-        for f in scale_factor.make_scale_factors(key(kf_id), self._latest[int(kf_id)], s,
-                                                 self._scale_noise):
-            self._add(f, "scale")
+        if s.size == 0:
+            return 0
+        if self.config.scale_factor_mode == "per_keyframe":
+            self._add(scale_factor.make_keyframe_scale_factor(key(kf_id), self._latest[int(kf_id)], s,
+                                                              self.config), "scale")
+        else:
+            for f in scale_factor.make_scale_factors(key(kf_id), self._latest[int(kf_id)], s,
+                                                     self._scale_noise):
+                self._add(f, "scale")
         self.n_scale_factors += int(s.size)
         return int(s.size)
 
@@ -205,8 +213,8 @@ class GlobalPoseGraph:
         self._new_values = gtsam.Values()
         self._pending_kinds = []
         n_iter = 1 + (max(extra, 8) if has_loop else extra)
-        for _ in range(n_iter - 1):
-            self._isam.update()
+        for _ in range(n_iter - 1):  # Gauss-Newton steps with relinearization (a loop moves a lot)
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
         removed = self._reject_inconsistent_loops() if has_loop else 0
         self._refresh_latest(all_keys=has_loop or removed > 0)
         return {"loops_removed": removed, "iterations": n_iter}
@@ -223,7 +231,7 @@ class GlobalPoseGraph:
             log.info("removing %d loop factor(s) inconsistent after the solve", len(bad))
             self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), bad)
             for _ in range(max(self.config.extra_iterations, 8)):
-                self._isam.update()
+                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
             for idx in bad:
                 self._loop_indices.pop(idx, None)
             self.n_loops_accepted -= len(bad)
