@@ -51,7 +51,7 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
     path = m.get("path_length_m") or float("nan")
     return {
         "name": tag, "command": " ".join(cmd[2:]), "wall_s": wall, "stats": s, "metrics": m,
-        "fps_wall": n / wall if n else None,
+        "fps_wall": s.get("fps") or (n / wall if n else None),  # run's own frames / s (with depth)
         "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
     }
 
@@ -70,7 +70,10 @@ def main(argv: list[str] | None = None) -> int:
         name, rest = spec.split("=", 1)
         seq_dir, gt = rest.rsplit(":", 1)
         for no_scale in (False, True):
-            r = run_one(name, seq_dir, gt, no_scale, workdir, args.extra.split())
+            extra = args.extra.split()
+            if name.startswith("synth") and "--preset" not in extra:
+                extra += ["--preset", "synth"]
+            r = run_one(name, seq_dir, gt, no_scale, workdir, extra)
             print(json.dumps({k: v for k, v in r.items() if k != "stats"}, default=str)[:2000], flush=True)
             rows.append(r)
     if args.out:
