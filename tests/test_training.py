@@ -184,3 +184,19 @@ def test_config_rejects_stale_keys(tmp_path):
         TrainConfig.from_yaml(path)
     with pytest.raises(TrainingError, match="does not exist"):
         TrainConfig.from_yaml(tmp_path / "missing.yaml")
+
+
+def test_second_stage_starts_from_first_stage_weights(tmp_path):
+    from metricslam_train.export import load_checkpoint
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    first = train(_config(tmp_path, steps=1), progress=False)
+    second = train(_config(tmp_path, steps=1, run_dir=str(tmp_path / "run2"), init_from=str(first)), progress=False)
+    meta = load_checkpoint(second)["meta"]
+    assert "initialized from final.pt" in meta["training_data"]
+    a, b = load_checkpoint(first)["model"], load_checkpoint(second)["model"]
+    # one small Adam step away from the first stage, far closer than a fresh initialization
+    fresh = PyramidDepthNet().state_dict()
+    key = "estimators.0.out.weight"
+    assert (b[key] - a[key]).abs().max() < (fresh[key] - a[key]).abs().max()

@@ -59,6 +59,9 @@ class TrainConfig(BaseModel):
     lr_halve_at: tuple[float, ...] = (0.6, 0.8)
     loss: LossConfig = LossConfig()
     augment: AugmentConfig = AugmentConfig()
+    #: optional checkpoint whose weights start this run (a second training stage); the optimizer
+    #: and step count start fresh, and its training data is recorded with this run's.
+    init_from: str | None = None
     checkpoint_every: int = Field(250, ge=1)
     seed: int = 0
     threads: int = Field(1, ge=1)

@@ -87,6 +87,15 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     step = 0
     last = run_dir / "last.pt"
+    if cfg.init_from:
+        init = torch.load(cfg.init_from, map_location=device, weights_only=False)
+        if "model" not in init or "meta" not in init:
+            raise TrainingError(f"init_from {cfg.init_from} is not a metricslam training checkpoint")
+        if not last.is_file():
+            net.load_state_dict(init["model"])
+            log.info("initialized weights from %s", cfg.init_from)
+        training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name}, trained on: "
+                         f"{init['meta']['training_data']}")
     if last.is_file():
         ckpt = torch.load(last, map_location=device, weights_only=False)
         net.load_state_dict(ckpt["model"])
