@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "up": "metricslam.cli.up_cmd",
     "replay": "metricslam.cli.replay_cmd",
     "poses": "metricslam.cli.poses_cmd",
+    "demo": "metricslam.cli.demo_cmd",
 }
 
 log = logging.getLogger("metricslam")

@@ -37,48 +37,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
-    from tqdm import tqdm
-
     from metricslam.datasets import open_sequence
-    from metricslam.errors import ConfigError, ServiceError
-    from metricslam_slam.client import FramePublisher, PoseRecorder, query_health
+    from metricslam_slam.replay import replay_sequence, wait_for_service
     from metricslam_slam.zenoh_config import open_client
 
-    if args.rate < 0:
-        raise ConfigError(f"--rate must be >= 0, got {args.rate}")
     seq = open_sequence(args.seq_dir)
-    if not 0 <= args.start < len(seq):
-        raise ConfigError(f"--start must be in [0, {len(seq) - 1}], got {args.start}")
-    stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
+    stop = None if args.max_frames is None else args.start + args.max_frames
     session = open_client(args.zenoh_endpoint)
     try:
         if args.wait > 0:
-            deadline = time.monotonic() + args.wait
-            while not query_health(session, timeout_s=1.0):
-                if time.monotonic() > deadline:
-                    raise ServiceError(f"no SLAM service answered on {args.zenoh_endpoint} within "
-                                       f"{args.wait:.0f} s; start one with `metricslam up`")
-                time.sleep(0.2)
-        publisher = FramePublisher(session, args.camera_id, block=True)
-        recorder = PoseRecorder(session, args.camera_id) if args.max_in_flight > 0 else None
-        period_s = 0.0 if args.rate == 0 else 1.0 / args.rate
-        t_start = time.monotonic()
-        for k, i in enumerate(tqdm(range(args.start, stop), desc=f"replay {args.camera_id}",
-                                   unit="frame", disable=args.no_progress)):
-            frame = seq[i]
-            if period_s:
-                delay = t_start + k * period_s - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-            if recorder is not None:  # bounded wait: a dropped frame must not stall the replay
-                recorder.wait_for(lambda r: sum(j >= args.start for j in r.poses) >= k - args.max_in_flight,
-                                  timeout_s=10.0)
-            publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)
-        publisher.close()
-        if recorder is not None:
-            recorder.close()
+            wait_for_service(session, args.wait, args.zenoh_endpoint)
+        replay_sequence(session, seq, args.camera_id, args.rate, args.start, stop,
+                        args.max_in_flight, progress=not args.no_progress)
     finally:
         session.close()
     return 0
