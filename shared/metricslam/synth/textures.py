@@ -98,7 +98,7 @@ def build_atlas(seed: int = 0) -> TextureAtlas:
         _normalize(0.5 * _normalize(moon) + 0.5 * _normalize(noise[::-1])),  # concrete
         _normalize(noise),
     ]
-    textures = [_normalize(t + 0.25 * (detail - 0.5) / 0.18) if k != TEX_NOISE else t
+    textures = [_normalize(t + 0.12 * (detail - 0.5) / 0.18) if k != TEX_NOISE else t
                 for k, t in enumerate(textures)]
     pyramids = [_mips(t) for t in textures]
     n_levels = len(pyramids[0])
