@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "replay": "metricslam.cli.replay_cmd",
     "poses": "metricslam.cli.poses_cmd",
     "demo": "metricslam.cli.demo_cmd",
+    "camera": "metricslam.cli.camera_cmd",
 }
 
 log = logging.getLogger("metricslam")
