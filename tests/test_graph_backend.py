@@ -200,3 +200,24 @@ def test_keyframe_delivered_after_a_correction_is_placed_in_its_own_epoch():
     assert s_err.max() < 0.04
     p_err = np.linalg.norm(np.array([est[k][:3, 3] for k in range(n)]) - T[:, :3, 3], axis=1)
     assert p_err.max() < 2.5
+
+
+def test_take_correction_does_not_wait_for_a_running_solve():
+    """The tracking thread polls take_correction every frame; a long solve must not block it."""
+    n = 10
+    backend = GlobalBackend(GraphConfig(inline=False), depth_source=None)
+    vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1)
+    for _ in range(n):
+        backend.on_keyframe_marginalized(vo.next_keyframe())
+    assert backend.wait_idle(30)
+    acquired = backend._lock.acquire()  # stand-in for a solve in progress  # noqa: SLF001
+    try:
+        assert acquired
+        done = threading.Event()
+        t = threading.Thread(target=lambda: (backend.take_correction(), backend.stats(), done.set()))
+        t.start()
+        t.join(timeout=10)
+        assert done.is_set()  # returned while the graph lock was held
+    finally:
+        backend._lock.release()  # noqa: SLF001
+    backend.close()

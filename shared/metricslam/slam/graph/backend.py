@@ -91,7 +91,8 @@ class GlobalBackend:
         self._records: dict[int, _KeyframeRecord] = {}
         self._last_of_segment: dict[int, int] = {}
         self._newest_kf: int | None = None
-        self._correction_ready = False
+        self._corr_lock = threading.Lock()  # guards _pending_correction only (never held long)
+        self._pending_correction: tuple[np.ndarray, np.ndarray] | None = None
         self._loops: list[LoopRecord] = []
         self._busy = 0
         self._stop = False
@@ -137,20 +138,30 @@ class GlobalBackend:
         """``S_new_vo`` (4, 4) mapping the current VO frame onto the optimized metric world frame
         (the newest solved keyframe lands on its graph pose), once per solve; else None.
 
-        The caller must apply it to the VO before it marginalizes the next keyframe: keyframes
-        received after this call are taken to be in the corrected frame.
+        Never waits for a running solve (its own small lock): the tracking thread calls it every
+        frame. The caller must apply it to the VO before it marginalizes the next keyframe:
+        keyframes received after this call are taken to be in the corrected frame (see
+        :func:`metricslam.slam.graph.odometry.resolve_epoch` for the tolerated exception).
         """
-        with self._lock:
-            if not self._correction_ready or self._newest_kf is None:
+        with self._corr_lock:
+            if self._pending_correction is None:
                 return None
-            self._correction_ready = False
-            rec = self._records[self._newest_kf]
-            S_world_n = self.graph.estimate(rec.kf_id)
-            S_ve_n = self.history.C(self.history.epoch) @ rec.S_vo0_kf
+            S_vo0_n, S_world_n = self._pending_correction
+            self._pending_correction = None
+            S_ve_n = self.history.C(self.history.epoch) @ S_vo0_n
             S_new_vo = orthonormalize(S_world_n @ sim3.inverse(orthonormalize(S_ve_n)))
             self.history.issue(S_new_vo)
             self._stats["corrections"] += 1
             return S_new_vo
+
+    def _offer_correction(self) -> None:
+        """After a solve (caller holds ``_lock``): remember the newest keyframe's solved pose."""
+        if self._newest_kf is None:
+            return
+        rec = self._records[self._newest_kf]
+        S_world_n = self.graph.estimate(rec.kf_id)
+        with self._corr_lock:
+            self._pending_correction = (rec.S_vo0_kf, S_world_n)
 
     def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
         with self._lock:
@@ -193,7 +204,7 @@ class GlobalBackend:
             self._flush_scales()
             try:
                 self.graph.solve(extra_iterations=max(self.config.extra_iterations, 5))
-                self._correction_ready = self._newest_kf is not None
+                self._offer_correction()
             except GraphError as exc:
                 log.warning("final global solve failed: %s", exc)
 
@@ -201,25 +212,27 @@ class GlobalBackend:
         """Counters and timings (ms) of the back end."""
         def _mean(x: list[float]) -> float:
             return float(np.mean(x)) if x else 0.0
-        with self._lock:
-            return {
-                "keyframes": self.graph.n_keyframes,
-                "scale_factors": self.graph.n_scale_factors,
-                "loops_accepted": len(self._loops),
-                "loops_rejected": self.graph.n_loops_rejected,
-                "loops": [(lp.frame_old, lp.frame_new) for lp in self._loops],
-                "depth_requests": self._stats["depth_requests"],
-                "depth_failures": self._stats["depth_failures"],
-                "depth_dropped": self._stats["depth_dropped"],
-                "corrections": self._stats["corrections"],
-                "segment_links": self._stats["segment_links"],
-                "epoch_mismatches": self._stats["epoch_mismatches"],
-                "depth_ms_mean": _mean(self._depth_ms),
-                "solve_ms_mean": _mean(self._solve_ms),
-                "solve_ms_max": float(max(self._solve_ms)) if self._solve_ms else 0.0,
-                "loop_ms_mean": _mean(self._loop_ms),
-                "scale_established": self.scale_established,
-            }
+        # no lock: plain counters and list copies (a status publisher must not wait on a solve)
+        loops = list(self._loops)
+        solve_ms = list(self._solve_ms)
+        return {
+            "keyframes": self.graph.n_keyframes,
+            "scale_factors": self.graph.n_scale_factors,
+            "loops_accepted": len(loops),
+            "loops_rejected": self.graph.n_loops_rejected,
+            "loops": [(lp.frame_old, lp.frame_new) for lp in loops],
+            "depth_requests": self._stats["depth_requests"],
+            "depth_failures": self._stats["depth_failures"],
+            "depth_dropped": self._stats["depth_dropped"],
+            "corrections": self._stats["corrections"],
+            "segment_links": self._stats["segment_links"],
+            "epoch_mismatches": self._stats["epoch_mismatches"],
+            "depth_ms_mean": _mean(list(self._depth_ms)),
+            "solve_ms_mean": _mean(solve_ms),
+            "solve_ms_max": float(max(solve_ms)) if solve_ms else 0.0,
+            "loop_ms_mean": _mean(list(self._loop_ms)),
+            "scale_established": self.scale_established,
+        }
 
     # -- work ---------------------------------------------------------------------------------
     def _measure_scale(self, kf_id, image, camera, uv_px, inv_depth) -> np.ndarray | None:
@@ -318,7 +331,7 @@ class GlobalBackend:
             self._loops = [lp for lp in self._loops if self._loop_still_in_graph(lp)]
         self._solve_ms.append(1e3 * (time.perf_counter() - t0))
         self._scale_factors_solved = n_before
-        self._correction_ready = True
+        self._offer_correction()
 
     def _loop_still_in_graph(self, lp: LoopRecord) -> bool:
         return any((v[0], v[1]) == (lp.kf_old, lp.kf_new) for v in self.graph._loop_indices.values())
