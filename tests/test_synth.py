@@ -232,3 +232,7 @@ def test_cli_writes_sequence(tmp_path: Path) -> None:
                      "--path", "straight", "--no-progress"]) == 0
     assert sorted(p.name for p in (out / "image_1").iterdir()) == ["000000.png", "000001.png"]
     assert cli_main(["synth", str(out), "--frames", "2", "--no-progress"]) == 1  # not empty
+    assert cli_main(["synth", str(tmp_path / "tiny"), "--frames", "2", "--size", "12x5",
+                     "--no-progress"]) == 1
+    assert cli_main(["synth", str(tmp_path / "none"), "--frames", "2", "--trajectory",
+                     str(tmp_path / "missing.txt"), "--no-progress"]) == 1

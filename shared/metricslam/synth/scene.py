@@ -146,8 +146,10 @@ def generate_sequence(out_dir: str | Path, frames: int, seed: int, trajectory: s
         raise SynthError(f"--frames must be >= 1, got {frames}")
     if start and trajectory is None:
         raise SynthError("--start only applies to --trajectory (a KITTI pose file)")
-    cfg = (config or SynthConfig()).model_copy(update={"width_px": int(size[0]), "height_px": int(size[1])})
-    cfg = SynthConfig.model_validate(cfg.model_dump())
+    width, height = (int(v) for v in size)
+    if width < 16 or height < 16:
+        raise SynthError(f"image size {width}x{height} is too small; use at least 16x16 (--size)")
+    cfg = (config or SynthConfig()).model_copy(update={"width_px": width, "height_px": height})
     T = (trj.kitti_segment(trajectory, frames, start) if trajectory is not None
          else trj.procedural(path, frames, seed))
     scene = SynthScene(T, seed, cfg)
