@@ -212,12 +212,22 @@ class GlobalPoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._pending_kinds = []
-        n_iter = 1 + (max(extra, 8) if has_loop else extra)
-        for _ in range(n_iter - 1):  # Gauss-Newton steps with relinearization (a loop moves a lot)
-            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+        n_iter = 1 + self._iterate(max(extra, 8) if has_loop else extra, stop_when_converged=has_loop)
         removed = self._reject_inconsistent_loops() if has_loop else 0
         self._refresh_latest(all_keys=has_loop or removed > 0)
         return {"loops_removed": removed, "iterations": n_iter}
+
+    def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
+        """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
+
+        Stops early once an update relinearizes no variable (every delta below the threshold).
+        Returns the number of updates done.
+        """
+        for i in range(max_updates):
+            res = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+            if stop_when_converged and res.getVariablesRelinearized() == 0:
+                return i + 1
+        return max_updates
 
     def _reject_inconsistent_loops(self) -> int:
         est = self._isam.calculateEstimate()
@@ -230,8 +240,7 @@ class GlobalPoseGraph:
         if bad:
             log.info("removing %d loop factor(s) inconsistent after the solve", len(bad))
             self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), bad)
-            for _ in range(max(self.config.extra_iterations, 8)):
-                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
+            self._iterate(max(self.config.extra_iterations, 8), stop_when_converged=True)
             for idx in bad:
                 self._loop_indices.pop(idx, None)
             self.n_loops_accepted -= len(bad)
