@@ -34,14 +34,17 @@ class CameraWorker:
         publish: sends a message on ``metricslam/<camera_id>/<topic>``.
         queue_size: frames held; on overflow the oldest is dropped and counted.
         keyframe_images: attach the image to keyframe messages.
+        on_estimate: called after each processed frame (the optional live viewer).
     """
 
     def __init__(self, camera_id: str, session_factory: Callable[[str, PinholeCamera], SlamSession],
-                 publish: Publish, queue_size: int = 8, keyframe_images: bool = False) -> None:
+                 publish: Publish, queue_size: int = 8, keyframe_images: bool = False,
+                 on_estimate: Callable[[str, Frame, PoseEstimate, SlamSession], None] | None = None) -> None:
         self.camera_id = camera_id
         self._factory = session_factory
         self._publish = publish
         self._keyframe_images = keyframe_images
+        self._on_estimate = on_estimate
         self._queue: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=queue_size)
         self._cond = threading.Condition()
         self._stop = False
@@ -125,6 +128,8 @@ class CameraWorker:
                 segment_id=est.segment_id, scale_established=est.scale_established,
                 T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64),
                 image=msg.image if self._keyframe_images else None))
+        if self._on_estimate is not None:
+            self._on_estimate(self.camera_id, frame, est, self._session)
         self.frames_processed += 1
         self.last_state = est.state
         self.scale_established = est.scale_established

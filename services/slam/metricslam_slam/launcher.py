@@ -118,12 +118,13 @@ class Stack:
             scale with ``use_scale=False``).
         use_scale, preset, session_kind: passed to the SLAM service.
         log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log`` (else discarded).
+        rerun: live view target of the SLAM service (``web`` or ``FILE.rrd``).
     """
 
     def __init__(self, zenoh_endpoint: str, depth_port: int | None = 8100, depth_host: str = "127.0.0.1",
                  use_scale: bool = True, preset: str | None = None, session_kind: str = "pipeline",
                  log_dir: str | None = None, restart_delay_s: float = 1.0,
-                 ready_timeout_s: float = 60.0) -> None:
+                 ready_timeout_s: float = 60.0, rerun: str | None = None) -> None:
         check_endpoint(zenoh_endpoint)
         logging.getLogger("httpx").setLevel(logging.WARNING)
         self.zenoh_endpoint = zenoh_endpoint
@@ -148,6 +149,8 @@ class Stack:
             slam.append("--no-scale")
         if preset:
             slam += ["--preset", preset]
+        if rerun:
+            slam += ["--rerun", rerun]
         self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
                                    f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"))
         if log_dir:

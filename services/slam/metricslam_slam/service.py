@@ -47,6 +47,15 @@ class SlamService:
                 settings.depth_url, timeout_s=settings.depth_timeout_s,
                 connect_timeout_s=settings.depth_connect_timeout_s,
                 retries=settings.depth_retries, backoff_s=settings.depth_backoff_s)
+        self.viewer = None
+        if settings.rerun:
+            from metricslam_slam.rerun_view import RerunView, TappedDepthSource
+            self.viewer = RerunView(settings.rerun)
+            if settings.use_scale and settings.session_kind == "pipeline":
+                if depth_source is None:  # make the in-process model explicit so it can be tapped
+                    from metricslam.slam.depth_source import OnnxDepthSource
+                    depth_source = OnnxDepthSource()
+                depth_source = TappedDepthSource(depth_source)
         self.depth_source = depth_source
         self._factory = session_factory or make_session_factory(
             settings.session_kind, settings.preset, settings.use_scale, depth_source)
@@ -103,6 +112,8 @@ class SlamService:
             entity.undeclare()
         if self._session is not None:
             self._session.close()
+        if self.viewer is not None:
+            self.viewer.close()
         close = getattr(self.depth_source, "close", None)
         if callable(close):
             close()
@@ -129,7 +140,8 @@ class SlamService:
             if worker is None:
                 worker = CameraWorker(camera_id, self._factory,
                                       lambda topic, msg, cid=camera_id: self._put(cid, topic, msg),
-                                      self.settings.queue_size, self.settings.keyframe_images)
+                                      self.settings.queue_size, self.settings.keyframe_images,
+                                      self._on_estimate if self.viewer is not None else None)
                 self._workers[camera_id] = worker
             return worker
 
@@ -143,6 +155,9 @@ class SlamService:
             return
         if not self._stopped.is_set():
             self._worker(camera_id).offer(sample.payload.to_bytes())
+
+    def _on_estimate(self, camera_id, frame, est, session) -> None:
+        self.viewer.log(camera_id, frame, est, session, self.depth_source)
 
     def _put(self, camera_id: str, topic: str, message: Message) -> None:
         if self._session is None:

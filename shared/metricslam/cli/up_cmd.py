@@ -30,6 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--log-dir", metavar="DIR", help="write each child's output to DIR/<name>.log")
     p.add_argument("--restart-delay", type=float, default=1.0, metavar="S",
                    help="seconds before restarting a child that died")
+    p.add_argument("--rerun", metavar="TARGET",
+                   help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
     p.set_defaults(func=run)
     return p
 
@@ -44,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     stack = Stack(args.zenoh_endpoint, depth_port=args.depth_port, depth_host=args.depth_host,
                   use_scale=not args.no_scale, preset=args.preset, session_kind=args.session_kind,
-                  log_dir=args.log_dir, restart_delay_s=args.restart_delay)
+                  log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 

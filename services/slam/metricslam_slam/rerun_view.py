@@ -1,0 +1,118 @@
+"""Optional live view with rerun-sdk (``viz`` extra; imported lazily, only when asked for).
+
+One recording per camera. Entities (world = the SLAM world frame, camera frame x right,
+y down, z forward as in docs/conventions.md)::
+
+    world/<cam>/camera            Transform3D T_world_cam + Pinhole (the current frame)
+    world/<cam>/camera/image      the input image (JPEG-compressed)
+    world/<cam>/trajectory        LineStrips3D of the published camera positions
+    world/<cam>/keyframes         Points3D of keyframe positions
+    world/<cam>/landmarks         Points3D of the local window's landmarks (VO world)
+    world/<cam>/keyframe_depth    DepthImage (metres) of the latest keyframe from the depth source
+
+``target`` is ``web`` (gRPC server + web viewer on localhost; the log says the URL) or a path
+ending in ``.rrd`` (a recording file; ``rerun FILE.rrd`` opens it).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from metricslam.datasets.base import Frame
+from metricslam.errors import ConfigError
+from metricslam.slam.types import PoseEstimate
+
+log = logging.getLogger(__name__)
+
+
+class RerunView:
+    """Logs frames, poses, keyframes, landmarks and depth maps of every camera."""
+
+    def __init__(self, target: str, application_id: str = "metricslam") -> None:
+        try:
+            import rerun as rr
+        except ImportError:
+            raise ConfigError("--rerun needs rerun-sdk: pip install 'metricslam[viz]'") from None
+        self._rr = rr
+        self._rec = rr.RecordingStream(application_id)
+        if target == "web":
+            uri = self._rec.serve_grpc()
+            rr.serve_web_viewer(connect_to=uri, open_browser=False)
+            log.info("rerun web viewer serving %s", uri)
+        elif target.endswith(".rrd"):
+            self._rec.save(target)
+        else:
+            raise ConfigError(f"--rerun must be 'web' or a path ending in .rrd, got {target!r}")
+        self._lock = threading.Lock()
+        self._positions: dict[str, list[np.ndarray]] = {}
+        self._keyframes: dict[str, list[np.ndarray]] = {}
+
+    def log(self, camera_id: str, frame: Frame, est: PoseEstimate, session: object,
+            depth_source: object | None = None) -> None:
+        """Log one processed frame (never raises: a viewer must not disturb SLAM)."""
+        try:
+            with self._lock:
+                self._log(camera_id, frame, est, session, depth_source)
+        except Exception:  # noqa: BLE001 -- viewing is best effort
+            log.exception("rerun logging failed for camera %s", camera_id)
+
+    def _log(self, cid: str, frame: Frame, est: PoseEstimate, session: object, depth_source) -> None:
+        rr, rec = self._rr, self._rec
+        base = f"world/{cid}"
+        rec.set_time("frame", sequence=frame.index)
+        rec.set_time("t", timestamp=frame.t_ns * 1e-9)
+        T = np.asarray(est.T_world_cam, dtype=float)
+        rec.log(f"{base}/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]),
+                rr.Pinhole(image_from_camera=frame.camera.K,
+                           resolution=[frame.camera.width_px, frame.camera.height_px]))
+        rec.log(f"{base}/camera/image", rr.Image(frame.image).compress(jpeg_quality=75))
+        self._positions.setdefault(cid, []).append(T[:3, 3].copy())
+        rec.log(f"{base}/trajectory", rr.LineStrips3D([np.array(self._positions[cid])]))
+        if est.is_keyframe:
+            self._keyframes.setdefault(cid, []).append(T[:3, 3].copy())
+            rec.log(f"{base}/keyframes", rr.Points3D(np.array(self._keyframes[cid]), radii=0.3))
+            points = _landmarks_world(session)
+            if points is not None and len(points):
+                rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
+        inv_depth = getattr(depth_source, "last_inv_depth_per_m", None)
+        if est.is_keyframe and inv_depth is not None:
+            depth_m = np.where(inv_depth > 1e-3, 1.0 / np.maximum(inv_depth, 1e-3), 0.0).astype(np.float32)
+            rec.log(f"{base}/keyframe_depth", rr.DepthImage(depth_m, meter=1.0))
+
+    def close(self) -> None:
+        self._rec.flush()
+        self._rec.disconnect()
+
+
+class TappedDepthSource:
+    """Wraps a DepthSource and keeps its latest answer for the viewer; forwards everything else
+    (``reachable``, ``probe``, ``close`` ...) to the wrapped source."""
+
+    def __init__(self, inner: object) -> None:
+        self._inner = inner
+        self.last_inv_depth_per_m: np.ndarray | None = None
+
+    def inv_depth_map(self, image, camera) -> np.ndarray:
+        out = self._inner.inv_depth_map(image, camera)
+        self.last_inv_depth_per_m = out
+        return out
+
+    def __getattr__(self, name: str):
+        return getattr(self._inner, name)
+
+
+def _landmarks_world(session: object) -> np.ndarray | None:
+    """Depth-known landmarks of the local window in the VO world frame, if the session exposes
+    a LocalVO (``SlamPipeline.vo``); None otherwise."""
+    vo = getattr(session, "vo", None)
+    if vo is None:
+        return None
+    window = vo.window
+    with window.lock:
+        lm_map = vo.map
+        lm_ids = np.array(list(lm_map.landmarks), dtype=np.int64)
+        _, points = lm_map.points_world(lm_ids, vo.keyframe_poses())
+    return points
