@@ -13,6 +13,7 @@ from metricslam.cli.main import main as cli_main
 from metricslam.datasets.kitti import KittiOdometry, read_kitti_calib
 from metricslam.errors import SynthError, TrajectoryError
 from metricslam.geometry import so3
+from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 from metricslam.synth import SynthConfig, SynthScene, generate_sequence, kitti_like_camera
 from metricslam.synth import materials as mt
 from metricslam.synth import trajectory as trj
@@ -202,14 +203,14 @@ def test_kitti_pose_file_errors(tmp_path: Path) -> None:
     bad = tmp_path / "bad.txt"
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 2 3\n")
     with pytest.raises(TrajectoryError, match=":2"):
-        trj.load_kitti_poses(bad)
+        read_kitti_poses(bad)
     with pytest.raises(SynthError, match="--start"):
         trj.kitti_segment(_write_poses(tmp_path), 5, start=3)
 
 
 def _write_poses(tmp_path: Path) -> Path:
     path = tmp_path / "ok.txt"
-    trj.save_kitti_poses(path, trj.procedural("straight", 6, seed=0))
+    write_kitti_poses(path, trj.procedural("straight", 6, seed=0))
     return path
 
 

@@ -12,33 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from metricslam.errors import SynthError, TrajectoryError
+from metricslam.errors import SynthError
+from metricslam.trajectory.io import read_kitti_poses
 from metricslam.geometry import se3, so3
 
 PATH_KINDS = ("straight", "turns", "loop")
 FRAME_RATE_HZ = 10.0
-
-
-def load_kitti_poses(path: str | Path) -> np.ndarray:
-    """Read a KITTI pose file (12 numbers per line, 3x4 row-major) -> (N, 4, 4) float64."""
-    path = Path(path)
-    if not path.is_file():
-        raise TrajectoryError("pose file not found; pass a KITTI poses/NN.txt file", path)
-    poses = []
-    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            values = np.array([float(v) for v in line.split()])
-        except ValueError as exc:
-            raise TrajectoryError(f"not a number ({exc})", path, line_no) from None
-        if values.size != 12:
-            raise TrajectoryError(f"expected 12 numbers (3x4 row-major), got {values.size}",
-                                  path, line_no)
-        poses.append(np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]]))
-    if not poses:
-        raise TrajectoryError("pose file is empty", path)
-    return np.stack(poses)
 
 
 def rebase(T_world_cam: np.ndarray) -> np.ndarray:
@@ -49,7 +28,7 @@ def rebase(T_world_cam: np.ndarray) -> np.ndarray:
 
 def kitti_segment(path: str | Path, frames: int, start: int = 0) -> np.ndarray:
     """Frames ``start .. start+frames-1`` of a KITTI pose file, rebased to the first of them."""
-    T_all = load_kitti_poses(path)
+    T_all = read_kitti_poses(path)
     if start < 0 or start + frames > len(T_all):
         raise SynthError(f"{path} has {len(T_all)} poses; cannot take {frames} frames from "
                          f"index {start} (lower --frames or --start)")
@@ -117,11 +96,3 @@ def procedural(kind: str, frames: int, seed: int) -> np.ndarray:
         R = so3.exp([0.0, yaw[i], 0.0]) @ so3.exp([pitch[i], 0.0, 0.0]) @ so3.exp([0.0, 0.0, roll[i]])
         T[i] = se3.from_rt(R, [px[i], 0.0, pz[i]])
     return rebase(T)
-
-
-def save_kitti_poses(path: str | Path, T_world_cam: np.ndarray) -> None:
-    """Write (N, 4, 4) poses as KITTI lines (3x4 row-major, exact shortest float repr)."""
-    rows = np.asarray(T_world_cam, float)[:, :3, :].reshape(len(T_world_cam), 12)
-    text = "".join(" ".join(np.format_float_scientific(v, unique=True) for v in row) + "\n"
-                   for row in rows)
-    Path(path).write_text(text)

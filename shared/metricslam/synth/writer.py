@@ -17,7 +17,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.errors import SynthError
-from metricslam.synth.trajectory import save_kitti_poses
+from metricslam.trajectory.io import write_kitti_poses
 
 DEPTH_SCALE = 256.0  # KITTI depth encoding: uint16 = round(depth_m * 256)
 MAX_DEPTH_M = 65535 / DEPTH_SCALE
@@ -76,4 +76,4 @@ class KittiWriter:
         (self.out / "calib.txt").write_text("\n".join(lines) + "\n")
         times = np.arange(len(T_world_cam)) / frame_rate_hz
         (self.out / "times.txt").write_text("".join(f"{t:.6e}\n" for t in times))
-        save_kitti_poses(self.out / "poses" / f"{seq_id}.txt", T_world_cam)
+        write_kitti_poses(self.out / "poses" / f"{seq_id}.txt", T_world_cam)

@@ -58,7 +58,8 @@ def write_kitti_poses(path: str | Path, T_world_cam: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w") as f:
         for pose in T:
-            f.write(" ".join(f"{v:.9e}" for v in pose[:3, :].reshape(-1)) + "\n")
+            # Shortest repr that reads back to the same float64: exact round trips.
+            f.write(" ".join(np.format_float_scientific(v, unique=True) for v in pose[:3, :].reshape(-1)) + "\n")
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
