@@ -227,6 +227,7 @@ class GlobalBackend:
             "corrections": self._stats["corrections"],
             "segment_links": self._stats["segment_links"],
             "epoch_mismatches": self._stats["epoch_mismatches"],
+            "graph_rebuilds": self.graph.n_rebuilds,
             "depth_ms_mean": _mean(list(self._depth_ms)),
             "solve_ms_mean": _mean(solve_ms),
             "solve_ms_max": float(max(solve_ms)) if solve_ms else 0.0,

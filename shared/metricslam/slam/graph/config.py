@@ -64,7 +64,7 @@ class GraphConfig(BaseModel):
 
     odom_sigma_rot_rad: float = Field(default=0.005, gt=0)
     odom_sigma_trans_rel: float = Field(default=0.05, gt=0)
-    odom_sigma_trans_min: float = Field(default=1e-3, gt=0)
+    odom_sigma_trans_min: float = Field(default=0.01, gt=0)
     odom_sigma_log_scale: float = Field(default=0.03, gt=0)
     use_vo_information: bool = False
     scale_sigma_log: float = Field(default=0.15, gt=0)

@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 
 #: chi-square gate (7 dof) on a loop's innovation against the predicted relative-pose covariance.
 LOOP_GATE_CHI2 = 200.0
+#: sigma of the gauge prior on the first keyframe: firm, but not so firm that Cholesky on
+#: 1e12-vs-1e2 information becomes indeterminate.
+ANCHOR_SIGMA = 1e-3
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,7 @@ class GlobalPoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = self.config.relinearize_skip
+        self._params = params
         self._isam = gtsam.ISAM2(params)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
@@ -68,6 +72,7 @@ class GlobalPoseGraph:
         self.n_scale_factors = 0
         self.n_loops_accepted = 0
         self.n_loops_rejected = 0
+        self.n_rebuilds = 0
 
     # -- construction -------------------------------------------------------------------------
     def has(self, kf_id: int) -> bool:
@@ -104,8 +109,8 @@ class GlobalPoseGraph:
         first = not self._keyframes
         self._keyframes.append(kf_id)
         if first:
-            free = scale_factor.FREE_SIGMA if not self.anchor_scale else 1e-6
-            sig = np.array([1e-6] * 6 + [min(free, 10.0)])
+            free = scale_factor.FREE_SIGMA if not self.anchor_scale else ANCHOR_SIGMA
+            sig = np.array([ANCHOR_SIGMA] * 6 + [min(free, 10.0)])
             self._add(gtsam.PriorFactorSimilarity3(key(kf_id), S_guess,
                                                    gtsam.noiseModel.Diagonal.Sigmas(sig)), "anchor")
         elif prior_sigmas is not None:
@@ -202,13 +207,16 @@ class GlobalPoseGraph:
         has_loop = any(isinstance(k, tuple) for k in kinds)
         try:
             result = self._isam.update(self._new_factors, self._new_values)
-        except RuntimeError as exc:
-            raise GraphError(f"ISAM2 update failed ({exc}); the graph is probably unconstrained") from exc
-        new_idx = list(result.getNewFactorsIndices())
-        for idx, kind in zip(new_idx, kinds):
-            self._factor_kinds[idx] = kind
-            if isinstance(kind, tuple):
-                self._loop_indices[idx] = kind[1:]
+            new_idx = list(result.getNewFactorsIndices())
+            for idx, kind in zip(new_idx, kinds):
+                self._factor_kinds[idx] = kind
+                if isinstance(kind, tuple):
+                    self._loop_indices[idx] = kind[1:]
+        except RuntimeError as exc:  # ill-conditioned incremental step: rebuild from a batch solve
+            log.warning("ISAM2 update failed (%s); rebuilding from a batch solve",
+                        str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+            self._rebuild()
+            self.n_rebuilds += 1
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._pending_kinds = []
@@ -216,6 +224,39 @@ class GlobalPoseGraph:
         removed = self._reject_inconsistent_loops() if has_loop else 0
         self._refresh_latest(all_keys=has_loop or removed > 0)
         return {"loops_removed": removed, "iterations": n_iter}
+
+    def _rebuild(self) -> None:
+        """Batch Levenberg-Marquardt on every factor (ISAM2's and the pending ones), then a fresh
+        ISAM2 seeded with the result. Raises :class:`GraphError` if the batch solve fails too."""
+        old_factors = self._isam.getFactorsUnsafe()
+        graph, kinds = gtsam.NonlinearFactorGraph(), []
+        for i in range(old_factors.size()):
+            f = old_factors.at(i)
+            if f is not None:
+                graph.add(f)
+                kinds.append(self._factor_kinds.get(i))
+        for i in range(self._new_factors.size()):
+            graph.add(self._new_factors.at(i))
+            kinds.append(self._pending_kinds[i])
+        values = gtsam.Values()
+        theta = self._isam.getLinearizationPoint()
+        for kf in self._keyframes:
+            k = key(kf)
+            values.insert(k, theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf])
+        try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+            self._isam = gtsam.ISAM2(self._params)
+            result = self._isam.update(graph, values)
+        except RuntimeError as exc:
+            raise GraphError(f"global graph could not be solved even in batch ({exc}); a keyframe is "
+                             "probably unconstrained") from exc
+        self._factor_kinds, self._loop_indices = {}, {}
+        for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
+            self._factor_kinds[idx] = kind
+            if isinstance(kind, tuple):
+                self._loop_indices[idx] = kind[1:]
+        for kf in self._keyframes:
+            self._latest[kf] = values.atSimilarity3(key(kf))
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
         """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
