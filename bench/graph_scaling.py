@@ -1,8 +1,9 @@
 """Global Sim(3) graph solve time vs number of keyframes (100 / 1,000 / 10,000).
 
-Builds the graph the way the back end does — one keyframe at a time with its odometry factor
-and ``max_scale_landmarks`` learned scale factors, one ISAM2 update each — on a synthetic
-drifting VO (``metricslam.slam.graph.synthetic``). Reports per-keyframe update time over the
+Drives the real ``GlobalBackend`` (inline, no loop detector) with a synthetic drifting VO that
+applies the back end's corrections (``metricslam.slam.graph.synthetic``): per keyframe the
+depth map is sampled at 60 landmarks, scale factors and the odometry factor are added, ISAM2
+updates and the correction is computed. Reports that per-keyframe time over the first and the
 last 10 % of keyframes (what the back end pays per keyframe at that size), the solve after a
 loop closure from the newest keyframe to the first one (the worst case: the whole chain is
 re-eliminated), a full estimate read-out, and one batch Levenberg-Marquardt solve of the same
@@ -28,42 +29,26 @@ import numpy as np
 
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.graph.odometry import odometry_information, relative_sim3
-from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
-from metricslam.geometry import se3
-from metricslam.slam.graph.synthetic import circle_path
+from metricslam.slam.graph.backend import GlobalBackend
+from metricslam.slam.graph.synthetic import SimulatedVO, SyntheticDepthSource, circle_path
 
 
 def run_size(n: int, cfg: GraphConfig, batch_max: int, seed: int = 0) -> dict:
-    rng = np.random.default_rng(seed)
     T = circle_path(n, 100.0, turns=max(1.0, n / 600.0) * (n - 1) / n)
-    graph = GlobalPoseGraph(cfg)
-    sigma = 1.0
-    T_vo = np.eye(4)
-    S_prev = None
+    vo = SimulatedVO(T, drift_per_kf=0.01, drift_noise=0.003, seed=seed)
+    backend = GlobalBackend(cfg.model_copy(update={"inline": True}), depth_source=SyntheticDepthSource(n))
+    graph = backend.graph
     update_ms, update_cpu_ms = [], []
-    S_true = []
-    for k in range(n):
-        if k > 0:
-            sigma *= float(np.exp(0.01 + 0.003 * rng.normal()))
-            T_rel = se3.inverse(T[k - 1]) @ T[k]
-            T_rel[:3, 3] /= sigma
-            T_vo = T_vo @ T_rel
-        S_vo = T_vo.copy()
-        S_true.append(sim3.from_se3(T[k], sigma))
+    for _ in range(n):
+        kf = vo.next_keyframe()  # (synthetic keyframe generation is not timed)
         t0, c0 = time.perf_counter(), time.process_time()
-        if S_prev is None:
-            graph.add_keyframe(k, S_vo)
-        else:
-            S_rel = relative_sim3(S_prev, S_vo)
-            graph.add_keyframe(k, graph.estimate(k - 1) @ S_rel, k - 1, S_rel,
-                               odometry_information(S_rel, None, cfg))
-        scales = sigma * np.exp(0.1 * rng.normal(size=cfg.max_scale_landmarks))
-        graph.add_scale_measurements(k, scales)
-        graph.solve()
+        backend.on_keyframe_marginalized(kf)
+        S = backend.take_correction()
         update_ms.append(1e3 * (time.perf_counter() - t0))
         update_cpu_ms.append(1e3 * (time.process_time() - c0))
-        S_prev = S_vo
+        if S is not None:
+            vo.apply_similarity(S)
+    S_true = [sim3.from_se3(T[k], vo.sigma_at_kf[k]) for k in range(n)]
     tail = np.array(update_ms[-max(1, n // 10):])
     tail_cpu = np.array(update_cpu_ms[-max(1, n // 10):])
     t0 = time.perf_counter()
