@@ -17,13 +17,20 @@ import numpy as np
 import pytest
 
 from metricslam.trajectory.io import read_kitti_poses
-from metricslam_slam.client import PoseRecorder
+from metricslam.datasets import open_sequence
+from metricslam_slam.client import PoseRecorder, query_trajectory
+from metricslam_slam.replay import replay_sequence
 from metricslam_slam.zenoh_config import open_client
 
 ENDPOINT = "tcp/127.0.0.1:17450"
 DEPTH_PORT = 18250
-N_FRAMES = 48
-PHASES = (0, 24, 32)  # depth up | depth killed | depth restarted
+N_FRAMES = 56
+OUTAGE_FRAMES = 8  # frames replayed while the depth service is dead
+SCALE_TOL_PCT = 10.0  # path-length scale error of the optimized trajectory vs ground truth
+
+
+def _path_length_m(T: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
 CLI = [sys.executable, "-m", "metricslam.cli.main"]
 
 
@@ -98,25 +105,37 @@ def test_up_replay_poses_with_depth_outage(synth_seq: Path, tmp_path: Path) -> N
                                  capture_output=True, text=True, env=env, timeout=120)
             assert out.returncode == 0, out.stdout + out.stderr
 
-        # 1. depth up: frames 0..23, scale factors are added.
-        replay(PHASES[0], PHASES[1] - PHASES[0])
-        assert watch.wait_for(lambda r: (s := r.latest_status()) is not None
-                              and s.session_stats.get("backend.scale_factors", 0) > 0, 60), \
-            watch.latest_status()
-        # 2. depth killed: status says so, poses keep flowing for frames 24..31.
+        def scale_factors(r: PoseRecorder) -> int:
+            status = r.latest_status()
+            return 0 if status is None else status.session_stats.get("backend.scale_factors", 0)
+
+        # 1. depth up: replay until the first scale factors are in (keyframes are marginalized
+        #    only once the local window is full, so the count of frames needed varies).
+        client_replay = open_client(ENDPOINT)
+        seq = open_sequence(synth_seq)
+        k = 0
+        while scale_factors(watch) == 0 and k < N_FRAMES - OUTAGE_FRAMES - 12:
+            replay_sequence(client_replay, seq, "cam0", 10.0, k, k + 4, max_in_flight=3, progress=False)
+            k += 4
+            watch.wait_for(lambda r: scale_factors(r) > 0, 2.0)
+        assert watch.wait_for(lambda r: scale_factors(r) > 0, 30), {
+            k: v for k, v in watch.latest_status().session_stats.items() if "ms_" not in k}
+        # 2. depth killed: status says so, poses keep flowing.
         os.kill(depth_pid, signal.SIGKILL)
         assert watch.wait_for(lambda r: r.latest_status().depth_reachable is False, 15)
         assert watch.latest_status().depth_error
-        replay(PHASES[1], PHASES[2] - PHASES[1])
-        assert watch.wait_for(lambda r: len(r.poses) >= PHASES[2], 60), sorted(watch.poses)
-        # 3. the launcher restarts it: status recovers, new scale factors arrive for 32..47.
+        replay_sequence(client_replay, seq, "cam0", 10.0, k, k + OUTAGE_FRAMES, max_in_flight=3, progress=False)
+        client_replay.close()
+        k += OUTAGE_FRAMES
+        assert watch.wait_for(lambda r: len(r.poses) >= k, 60), sorted(watch.poses)
+        # 3. the launcher restarts it: status recovers; the rest goes through the replay CLI
+        #    and new scale factors arrive.
         lines.wait("depth-service  restarted", 30)
         assert watch.wait_for(lambda r: r.latest_status().depth_reachable is True, 60)
-        factors_down = watch.latest_status().session_stats.get("backend.scale_factors", 0)
-        replay(PHASES[2], N_FRAMES - PHASES[2])
+        factors_down = scale_factors(watch)
+        replay(k, N_FRAMES - k)
         assert poses.wait(120) == 0, poses.stdout.read()
-        assert watch.wait_for(lambda r: r.latest_status().session_stats.get(
-            "backend.scale_factors", 0) > factors_down, 30), "scale factors did not resume"
+        assert watch.wait_for(lambda r: scale_factors(r) > factors_down, 30), "scale factors did not resume"
 
         T = read_kitti_poses(est)
         assert T.shape == (N_FRAMES, 4, 4) and np.all(np.isfinite(T))
@@ -124,6 +143,7 @@ def test_up_replay_poses_with_depth_outage(synth_seq: Path, tmp_path: Path) -> N
         final = watch.latest_status()
         assert final.queue_drops == 0 and final.malformed == 0
         assert final.scale_established
+        optimized = query_trajectory(session, "cam0")
         watch.close()
     finally:
         if session is not None:
@@ -131,3 +151,13 @@ def test_up_replay_poses_with_depth_outage(synth_seq: Path, tmp_path: Path) -> N
         for proc in reversed(procs):
             _stop(proc)
     assert up.returncode == 0
+
+    # Metric: the optimized trajectory's travelled distance vs ground truth (any path shape).
+    from metricslam.depth.model import DepthModel
+
+    T_gt = open_sequence(synth_seq).T_world_cam_gt
+    scale_error_pct = 100 * abs(_path_length_m(optimized.T_world_cam) / _path_length_m(T_gt) - 1)
+    if DepthModel.load().contract.training_data == "random init":
+        pytest.xfail(f"shipped depth model is the random-init placeholder; scale error "
+                     f"{scale_error_pct:.0f} % (stack checks above passed)")
+    assert scale_error_pct <= SCALE_TOL_PCT
