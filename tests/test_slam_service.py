@@ -57,8 +57,9 @@ def stack(request):
                                        session_kind="identity", status_period_s=0.2, **overrides)
         svc = SlamService(settings, session_factory=factory).start()
         services.append(svc)
-        deadline = time.monotonic() + 5
-        while query_health(client, 0.5) is None and time.monotonic() < deadline:
+        deadline = time.monotonic() + 5  # until every started service answers through the router
+        while len(list(client.get(keys.HEALTH_KEY, timeout=0.5))) < len(services) \
+                and time.monotonic() < deadline:
             time.sleep(0.05)
         return svc
 
@@ -161,3 +162,20 @@ def test_bounded_queue_drops_oldest_and_counts(stack) -> None:
     assert status.queue_drops > 0
     assert n - 1 in recorder.poses  # the newest frame always survives drop-oldest
     assert len(recorder.poses) == status.frames_processed
+
+
+def test_cameras_partitioned_across_workers(stack) -> None:
+    _, client, start_service = stack
+    svc_a = start_service(frame_key_expr="metricslam/fleet-a-$*/frame")
+    svc_b = start_service(frame_key_expr="metricslam/fleet-b-$*/frame")
+    recs = {cid: PoseRecorder(client, cid) for cid in ("fleet-a-1", "fleet-b-1")}
+    for cid in recs:
+        pub = FramePublisher(client, cid)
+        for i in range(5):
+            pub.publish(i, i, _image(i), CAMERA)
+        pub.close()
+    for rec in recs.values():
+        assert rec.wait_frames(5, 10)
+        assert sorted(rec.poses) == list(range(5))
+    assert svc_a.health()["cameras"] == ["fleet-a-1"] and svc_b.health()["cameras"] == ["fleet-b-1"]
+    assert len(query_trajectory(client, "fleet-b-1").frame_index) == 5

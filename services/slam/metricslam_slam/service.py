@@ -82,15 +82,20 @@ class SlamService:
                     raise
                 time.sleep(0.5)
         s = self._session
+        try:
+            self._frame_keys = zenoh.KeyExpr(self.settings.frame_key_expr)
+        except zenoh.ZError as exc:
+            raise ServiceError(f"frame_key_expr {self.settings.frame_key_expr!r} is not a zenoh key "
+                               f"expression: {exc}") from None
         self._entities = [
-            s.declare_subscriber(keys.wildcard("frame"), self._on_frame),
+            s.declare_subscriber(self._frame_keys, self._on_frame),
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
         ]
         self._status_thread = threading.Thread(target=self._status_loop, name="slam-status", daemon=True)
         self._status_thread.start()
         log.info("SLAM service connected to %s; listening on %s", self.settings.zenoh_endpoint,
-                 keys.wildcard("frame"))
+                 self.settings.frame_key_expr)
         return self
 
     def stop(self) -> None:
@@ -177,8 +182,9 @@ class SlamService:
         with self._workers_lock:
             worker = self._workers.get(camera_id)
         if worker is None:
-            query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())
-            return
+            if self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame"))):
+                query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())
+            return  # another worker owns this camera: stay silent
         poses = worker.trajectory()
         n = len(poses)
         message = TrajectoryMessage(

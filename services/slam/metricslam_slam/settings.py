@@ -27,6 +27,8 @@ class SlamServiceSettings(BaseSettings):
         status_period_s: how often ``…/status`` is published (and the depth service probed).
         depth_timeout_s / depth_connect_timeout_s / depth_retries / depth_backoff_s: HTTP client.
         keyframe_images: attach the keyframe image to ``…/keyframe`` messages.
+        frame_key_expr: which cameras this worker serves, e.g. ``metricslam/fleet-a-$*/frame``
+            (partition cameras across SLAM workers; docs/deployment.md).
         rerun: live view with rerun-sdk: ``web`` or a ``.rrd`` path (needs the ``viz`` extra).
     """
 
@@ -45,6 +47,7 @@ class SlamServiceSettings(BaseSettings):
     depth_retries: int = Field(default=2, ge=0, le=10)
     depth_backoff_s: float = Field(default=0.2, ge=0)
     keyframe_images: bool = False
+    frame_key_expr: str = "metricslam/*/frame"
     rerun: str | None = None
 
 

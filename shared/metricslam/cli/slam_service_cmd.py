@@ -29,6 +29,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="seconds between status messages")
     p.add_argument("--keyframe-images", action="store_true", default=None,
                    help="attach images to keyframe messages")
+    p.add_argument("--frames-key", dest="frame_key_expr", metavar="KEYEXPR",
+                   help="cameras this worker serves (default metricslam/*/frame; e.g. "
+                   "'metricslam/fleet-a-$*/frame')")
     p.add_argument("--rerun", metavar="TARGET",
                    help="live view: 'web' (viewer on localhost) or FILE.rrd (needs metricslam[viz])")
     p.set_defaults(func=run)
@@ -42,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from metricslam_slam.settings import SlamServiceSettings
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "preset", "queue_size",
-                                                 "session_kind", "status_period_s", "keyframe_images", "rerun")
+                                                 "session_kind", "status_period_s", "keyframe_images", "rerun",
+                                                 "frame_key_expr")
                  if getattr(args, k) is not None}
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
