@@ -52,13 +52,16 @@ class VOConfig(BaseModel):
     pose_iterations: int = Field(8, ge=1, description="motion-only Gauss-Newton iterations")
 
     # --- window BA ---
-    window_size: int = Field(7, ge=3, description="keyframes kept in the sliding window")
+    window_size: int = Field(10, ge=3, description="keyframes kept in the sliding window")
     ba_iterations: int = Field(6, ge=1, description="LM iterations per window solve")
     huber_px: float = Field(1.5, gt=0, description="Huber threshold of reprojection residuals")
     min_landmark_parallax_deg: float = Field(
         0.3, ge=0, description="a new landmark needs this much ray angle to get a depth")
     max_landmarks_per_keyframe: int = Field(300, ge=10, description="child landmarks kept per KF")
     ba_in_background: bool = Field(True, description="solve the window in a worker thread")
+    keyframe_waits_for_ba: bool = Field(
+        True, description="a new keyframe waits for the solve still running (at most one in "
+        "flight); ordinary frames never wait")
     blas_threads: int | None = Field(
         1, ge=1, description="process-wide OpenBLAS thread cap set by LocalVO (its matrices are "
         "tiny; multi-threaded BLAS on a busy 2-core machine is ~10x slower); None = leave alone")

@@ -100,9 +100,11 @@ class LocalVO:
         self._kf_track_uv = np.zeros((0, 2))
         self._frames_since_kf = 0
         self._anchors: list[Anchor] = []
+        self._C_pending = np.eye(4)
         if config.blas_threads is not None:
             _limit_blas_threads(config.blas_threads)
         self._worker = BAWorker(self.window) if config.ba_in_background else None
+        self.window.on_correction = self._follow_window
 
     @property
     def map(self) -> LandmarkMap:
@@ -175,6 +177,18 @@ class LocalVO:
             self._T_last_cur[:3, 3] *= s
             if self._ref is not None:
                 self._ref.T_world_ref = warp(self._ref.T_world_ref)
+            S = np.asarray(S_new_old, dtype=float)
+            self._C_pending = orthonormalized(S @ self._C_pending @ np.linalg.inv(S))
+
+    def _follow_window(self, C_new_old: np.ndarray) -> None:
+        """The newest keyframe moved by ``C_new_old`` in a (background) solve: remember it so
+        the tracker moves its poses along (they were estimated against the old map)."""
+        self._C_pending = C_new_old @ self._C_pending
+
+    def _take_correction(self) -> np.ndarray | None:
+        with self._lock:
+            C, self._C_pending = self._C_pending, np.eye(4)
+        return None if np.allclose(C, np.eye(4), atol=1e-15) else C
 
     # ------------------------------------------------------------------ frames
     def _to_gray(self, frame: Frame) -> np.ndarray | None:
@@ -309,6 +323,9 @@ class LocalVO:
     def _process_tracking(self, frame: Frame, gray: np.ndarray) -> PoseEstimate:
         cfg = self.config
         t0 = time.perf_counter()
+        C = self._take_correction()
+        if C is not None:
+            self._T_world_last = orthonormalized(C @ self._T_world_last)
         T_pred = orthonormalized(self._T_world_last @ self._T_last_cur)
         with self._lock:
             T_by_kf = self.window.poses_by_kf()
@@ -332,6 +349,10 @@ class LocalVO:
                      cfg.min_tracked_landmarks)
             return self._lose(frame)
         self.frontend.drop(tracks.ids[mask][~inl])
+        C = self._take_correction()  # a solve finished while this frame was tracked
+        if C is not None:
+            self._T_world_last = orthonormalized(C @ self._T_world_last)
+            T_world_cam = orthonormalized(C @ T_world_cam)
         self._T_last_cur = se3.inverse(self._T_world_last) @ T_world_cam
         self._T_world_last = T_world_cam
         self._frames_since_kf += 1
@@ -358,6 +379,12 @@ class LocalVO:
                 or self._frames_since_kf >= cfg.keyframe_max_frames)
 
     def _add_keyframe(self, frame: Frame, gray: np.ndarray, T_world_cam: np.ndarray) -> None:
+        if self._worker is not None and self.config.keyframe_waits_for_ba:
+            # at most one solve in flight: a keyframe joins an optimized window (non-keyframe
+            # frames never wait)
+            t0 = time.perf_counter()
+            self._worker.wait_idle()
+            self.timings_ms["ba_wait"].append(1e3 * (time.perf_counter() - t0))
         tr = self.frontend.tracks
         with self._lock:
             kf = self._make_kf(frame.index, int(frame.t_ns), T_world_cam, gray)

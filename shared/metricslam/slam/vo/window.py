@@ -69,6 +69,9 @@ class SlidingWindow:
         self.frozen_poses: dict[int, np.ndarray] = {}  # frame_index -> T at marginalization
         self._last_marg: dict[int, np.ndarray] = {}  # segment -> T_vo_kf of its last marginalized
         self._next_kf_id = 0
+        #: called (under ``lock``) with ``C_new_old`` (4, 4) after a solve moved the newest
+        #: solved keyframe; the owner moves its current pose with it
+        self.on_correction: Callable[[np.ndarray], None] | None = None
         self.counters = counters
         self.timings_ms = timings_ms
 
@@ -177,9 +180,20 @@ class SlidingWindow:
 
     def _write_back(self, kf_ids, lm_ids, problem, T_new, rho_new, err_px) -> None:
         by_id = {kf.kf_id: kf for kf in self.keyframes}
+        newest = by_id.get(kf_ids[-1])
+        # keyframes added while the solve ran (background mode) follow the newest solved one,
+        # so the map the tracker uses stays consistent
+        C = None if newest is None else T_new[-1] @ se3.inverse(newest.T_world_kf)
         for k, Tk in zip(kf_ids, T_new):
             if k in by_id:
                 by_id[k].T_world_kf = Tk
+        if C is not None:
+            solved = set(kf_ids)
+            for kf in self.keyframes:
+                if kf.kf_id not in solved:
+                    kf.T_world_kf = C @ kf.T_world_kf
+            if self.on_correction is not None:
+                self.on_correction(C)
         for j, lid in enumerate(lm_ids):
             lm = self.map.landmarks.get(lid)
             if lm is not None:
