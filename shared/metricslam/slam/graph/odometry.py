@@ -84,7 +84,7 @@ def relative_sim3(S_vo0_j: np.ndarray, S_vo0_k: np.ndarray) -> np.ndarray:
 
 def resolve_epoch(
     history: VoFrameHistory, S_vo0_j: np.ndarray, epoch_j: int, T_vo_kf: np.ndarray,
-    T_prevkf_kf: np.ndarray | None, epoch_now: int, max_back: int = 3, tol: float = 1e-5,
+    T_prevkf_kf: np.ndarray | None, epoch_now: int, max_back: int = 3, tol: float = 1e-3,
 ) -> tuple[int, np.ndarray, bool]:
     """The epoch keyframe ``k`` was *marginalized* in, which may precede its delivery.
 
