@@ -3,8 +3,8 @@
 :class:`SlidingWindow` is the back-end half of :class:`~metricslam.slam.vo.local_vo.LocalVO`
 (paper §III-C.3/4). All state is guarded by one re-entrant lock so the tracking thread, the BA
 worker (:class:`BAWorker`) and ``apply_similarity`` (the global graph's warp) can interleave:
-a solve copies the window under the lock, optimizes without it, and writes back only if no warp
-happened meanwhile (``generation``). Marginalized keyframes are queued in ``outbox``; the owner
+a solve copies the window under the lock, optimizes without it, and writes back its result
+re-expressed through any warps applied meanwhile (``warps``). Marginalized keyframes are queued in ``outbox``; the owner
 delivers them from its own thread.
 """
 
@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from metricslam.camera import PinholeCamera
-from metricslam.geometry import se3
+from metricslam.geometry import se3, sim3
 from metricslam.slam.types import MarginalizedKeyframe
 from metricslam.slam.vo.ba import bundle_adjust
 from metricslam.slam.vo.config import VOConfig
@@ -64,7 +64,7 @@ class SlidingWindow:
         self.map = LandmarkMap(camera)
         self.prior: Prior | None = None
         self.prior_ids: list[int] = []
-        self.generation = 0
+        self.warps: list[np.ndarray] = []  # every S_new_old applied so far (generation = len)
         self.outbox: deque[MarginalizedKeyframe] = deque()
         self.frozen_poses: dict[int, np.ndarray] = {}  # frame_index -> T at marginalization
         self._last_marg: dict[int, np.ndarray] = {}  # segment -> T_vo_kf of its last marginalized
@@ -163,14 +163,19 @@ class SlidingWindow:
             kf_ids = [kf.kf_id for kf in self.keyframes]
             T = np.array([kf.T_world_kf for kf in self.keyframes])
             problem, lm_ids = self.map.problem(kf_ids, T, self._window_prior(kf_ids, T))
-            generation = self.generation
+            generation = len(self.warps)
         if problem.n_landmarks >= 6 and len(kf_ids) >= 2:
             res = bundle_adjust(problem, cfg.huber_px, cfg.ba_iterations, fixed_poses=(0,))
             final = problem.with_values(res.T_world_kf, res.lm_rho)
             err = np.linalg.norm(residuals(final).residual_px, axis=1)
             with self.lock:
-                if generation == self.generation:  # else a warp happened: results are stale
-                    self._write_back(kf_ids, lm_ids, problem, res.T_world_kf, res.lm_rho, err)
+                T_new, rho_new = res.T_world_kf, res.lm_rho
+                if len(self.warps) > generation:  # warped while solving: follow the warps
+                    S = np.eye(4)
+                    for W in self.warps[generation:]:
+                        S = W @ S
+                    T_new, rho_new = _warp_poses(S, T_new), rho_new / sim3.scale(S)
+                self._write_back(kf_ids, lm_ids, problem, T_new, rho_new, err)
             self.timings_ms["ba"].append(1e3 * (time.perf_counter() - t0))
         with self.lock:
             while len(self.keyframes) > cfg.window_size:
@@ -272,8 +277,18 @@ class SlidingWindow:
                 self.outbox[k] = dataclasses.replace(
                     mkf, T_vo_kf=warp(mkf.T_vo_kf), T_prevkf_kf=rel,
                     landmarks_inv_depth=mkf.landmarks_inv_depth / s)
-            self.generation += 1
+            self.warps.append(S.copy())
         return warp
+
+
+def _warp_poses(S_new_old: np.ndarray, T_old: np.ndarray) -> np.ndarray:
+    """Rigid poses (n, 4, 4) mapped by a similarity: rotation ``R·R_i``, position ``S·t_i``."""
+    s = sim3.scale(S_new_old)
+    R = S_new_old[:3, :3] / s
+    out = np.array(T_old, copy=True)
+    out[:, :3, :3] = R @ out[:, :3, :3]
+    out[:, :3, 3] = out[:, :3, 3] @ S_new_old[:3, :3].T + S_new_old[:3, 3]
+    return out
 
 
 class BAWorker:
