@@ -8,7 +8,8 @@ y down, z forward as in docs/conventions.md)::
     world/<cam>/trajectory        LineStrips3D of the published camera positions
     world/<cam>/keyframes         Points3D of keyframe positions
     world/<cam>/landmarks         Points3D of the local window's landmarks (VO world)
-    world/<cam>/keyframe_depth    DepthImage (metres) of the latest keyframe from the depth source
+    world/keyframe_depth          DepthImage (metres) of each keyframe the depth source answered
+                                  for (logged from the back end's depth worker as answers arrive)
 
 ``target`` is ``web`` (gRPC server + web viewer on localhost; the log says the URL) or a path
 ending in ``.rrd`` (a recording file; ``rerun FILE.rrd`` opens it).
@@ -50,16 +51,15 @@ class RerunView:
         self._positions: dict[str, list[np.ndarray]] = {}
         self._keyframes: dict[str, list[np.ndarray]] = {}
 
-    def log(self, camera_id: str, frame: Frame, est: PoseEstimate, session: object,
-            depth_source: object | None = None) -> None:
+    def log(self, camera_id: str, frame: Frame, est: PoseEstimate, session: object) -> None:
         """Log one processed frame (never raises: a viewer must not disturb SLAM)."""
         try:
             with self._lock:
-                self._log(camera_id, frame, est, session, depth_source)
+                self._log(camera_id, frame, est, session)
         except Exception:  # noqa: BLE001 -- viewing is best effort
             log.exception("rerun logging failed for camera %s", camera_id)
 
-    def _log(self, cid: str, frame: Frame, est: PoseEstimate, session: object, depth_source) -> None:
+    def _log(self, cid: str, frame: Frame, est: PoseEstimate, session: object) -> None:
         rr, rec = self._rr, self._rec
         base = f"world/{cid}"
         rec.set_time("frame", sequence=frame.index)
@@ -77,10 +77,16 @@ class RerunView:
             points = _landmarks_world(session)
             if points is not None and len(points):
                 rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
-        inv_depth = getattr(depth_source, "last_inv_depth_per_m", None)
-        if est.is_keyframe and inv_depth is not None:
-            depth_m = np.where(inv_depth > 1e-3, 1.0 / np.maximum(inv_depth, 1e-3), 0.0).astype(np.float32)
-            rec.log(f"{base}/keyframe_depth", rr.DepthImage(depth_m, meter=1.0))
+
+    def log_depth(self, inv_depth_per_m: np.ndarray) -> None:
+        """Log one keyframe's metric depth map (called by :class:`TappedDepthSource`)."""
+        try:
+            with self._lock:
+                inv = np.asarray(inv_depth_per_m, dtype=np.float32)
+                depth_m = np.where(inv > 1e-3, 1.0 / np.maximum(inv, 1e-3), 0.0).astype(np.float32)
+                self._rec.log("world/keyframe_depth", self._rr.DepthImage(depth_m, meter=1.0))
+        except Exception:  # noqa: BLE001 -- viewing is best effort
+            log.exception("rerun depth logging failed")
 
     def close(self) -> None:
         self._rec.flush()
@@ -88,16 +94,16 @@ class RerunView:
 
 
 class TappedDepthSource:
-    """Wraps a DepthSource and keeps its latest answer for the viewer; forwards everything else
+    """Wraps a DepthSource and hands each answer to ``on_map``; forwards everything else
     (``reachable``, ``probe``, ``close`` ...) to the wrapped source."""
 
-    def __init__(self, inner: object) -> None:
+    def __init__(self, inner: object, on_map) -> None:
         self._inner = inner
-        self.last_inv_depth_per_m: np.ndarray | None = None
+        self._on_map = on_map
 
     def inv_depth_map(self, image, camera) -> np.ndarray:
         out = self._inner.inv_depth_map(image, camera)
-        self.last_inv_depth_per_m = out
+        self._on_map(out)
         return out
 
     def __getattr__(self, name: str):

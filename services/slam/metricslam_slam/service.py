@@ -55,7 +55,7 @@ class SlamService:
                 if depth_source is None:  # make the in-process model explicit so it can be tapped
                     from metricslam.slam.depth_source import OnnxDepthSource
                     depth_source = OnnxDepthSource()
-                depth_source = TappedDepthSource(depth_source)
+                depth_source = TappedDepthSource(depth_source, self.viewer.log_depth)
         self.depth_source = depth_source
         self._factory = session_factory or make_session_factory(
             settings.session_kind, settings.preset, settings.use_scale, depth_source)
@@ -162,7 +162,7 @@ class SlamService:
             self._worker(camera_id).offer(sample.payload.to_bytes())
 
     def _on_estimate(self, camera_id, frame, est, session) -> None:
-        self.viewer.log(camera_id, frame, est, session, self.depth_source)
+        self.viewer.log(camera_id, frame, est, session)
 
     def _put(self, camera_id: str, topic: str, message: Message) -> None:
         if self._session is None:
