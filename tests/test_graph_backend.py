@@ -21,31 +21,29 @@ def _rigid(S: np.ndarray) -> np.ndarray:
     return se3.from_rt(R, t)
 
 
-def test_history_maps_every_epoch_to_a_common_frame():
-    """T_vo_kf given in successive corrected VO frames map back to one frame with unit scales."""
+def test_odometry_across_corrections_is_the_true_relative_motion():
+    """Keyframes reported in successive corrected VO frames give the true relative Sim(3)."""
     rng = np.random.default_rng(0)
     hist = VoFrameHistory()
     T_true = circle_path(12, 20.0, turns=0.3)
-    S_vo0, epochs = [], []
+    C = np.eye(4)  # epoch-0 frame -> current VO frame (test-side bookkeeping only)
+    reported = []
     for k in range(12):
         if k % 3 == 2:  # a correction with rotation, translation and a unit change
-            hist.issue(sim3.exp(np.r_[0.1 * rng.normal(size=3), rng.normal(size=3), 0.5 * rng.normal()]))
-        e = hist.epoch
-        C = hist.C(e)
+            S = sim3.exp(np.r_[0.1 * rng.normal(size=3), rng.normal(size=3), 0.5 * rng.normal()])
+            hist.issue(S)
+            C = S @ C
         # the VO reports the keyframe rigidly in its current frame and units (apply_similarity)
-        T_vo_kf = _rigid(C @ T_true[k])
-        S = hist.to_epoch0(T_vo_kf, e)
-        S_vo0.append(S)
-        epochs.append(e)
-        np.testing.assert_allclose(S, T_true[k] @ np.diag([1.0 / sim3.scale(C)] * 3 + [1.0]), atol=1e-9)
+        reported.append((_rigid(C @ T_true[k]), hist.epoch, sim3.scale(C)))
     for j in range(11):
-        S_jk = relative_sim3(S_vo0[j], S_vo0[j + 1])
-        # its scale carries the unit change between the two keyframes' epochs
-        expected = sim3.scale(hist.C(epochs[j])) / sim3.scale(hist.C(epochs[j + 1]))
-        assert sim3.scale(S_jk) == pytest.approx(expected, rel=1e-9)
-        # rotation of the relative measurement is the true relative rotation in every case
-        R_true = T_true[j][:3, :3].T @ T_true[j + 1][:3, :3]
-        np.testing.assert_allclose(sim3.split(S_jk)[0], R_true, atol=1e-9)
+        (T_j, e_j, s_j), (T_k, e_k, s_k) = reported[j], reported[j + 1]
+        S_jk = relative_sim3(T_j, T_k, hist.between(e_j, e_k))
+        # truth: rigid relative motion, k's units -> j's units (unit = 1/scale(C) epoch-0 units)
+        T_rel = se3.inverse(T_true[j]) @ T_true[j + 1]
+        expected = np.diag([s_j] * 3 + [1.0]) @ T_rel @ np.diag([1.0 / s_k] * 3 + [1.0])
+        np.testing.assert_allclose(S_jk, expected, atol=1e-9)
+    M = hist.between(1, 4)
+    np.testing.assert_allclose(hist.between(4, 1) @ M, np.eye(4), atol=1e-12)
 
 
 @pytest.mark.parametrize("inline", [True, False])

@@ -51,7 +51,7 @@ class _KeyframeRecord:
     frame_index: int
     segment_id: int
     epoch: int
-    S_vo0_kf: np.ndarray  # keyframe pose in the epoch-0 VO frame (scale = its units -> epoch-0)
+    T_vo_kf: np.ndarray  # keyframe pose in the VO frame of its epoch (its own units)
     step_length: float = 1.0  # odometry step into this keyframe, in its predecessor's units
 
 
@@ -92,7 +92,7 @@ class GlobalBackend:
         self._last_of_segment: dict[int, int] = {}
         self._newest_kf: int | None = None
         self._corr_lock = threading.Lock()  # guards _pending_correction only (never held long)
-        self._pending_correction: tuple[np.ndarray, np.ndarray] | None = None
+        self._pending_correction: tuple[np.ndarray, int, np.ndarray] | None = None
         self._loops: list[LoopRecord] = []
         self._busy = 0
         self._stop = False
@@ -146,9 +146,9 @@ class GlobalBackend:
         with self._corr_lock:
             if self._pending_correction is None:
                 return None
-            S_vo0_n, S_world_n = self._pending_correction
+            T_vo_n, epoch_n, S_world_n = self._pending_correction
             self._pending_correction = None
-            S_ve_n = self.history.C(self.history.epoch) @ S_vo0_n
+            S_ve_n = self.history.between(epoch_n, self.history.epoch) @ T_vo_n
             S_new_vo = orthonormalize(S_world_n @ sim3.inverse(orthonormalize(S_ve_n)))
             self.history.issue(S_new_vo)
             self._stats["corrections"] += 1
@@ -161,7 +161,7 @@ class GlobalBackend:
         rec = self._records[self._newest_kf]
         S_world_n = self.graph.estimate(rec.kf_id)
         with self._corr_lock:
-            self._pending_correction = (rec.S_vo0_kf, S_world_n)
+            self._pending_correction = (rec.T_vo_kf, rec.epoch, S_world_n)
 
     def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
         with self._lock:
@@ -260,33 +260,32 @@ class GlobalBackend:
     def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
         """Insert one keyframe (odometry or prior), then query loops. Caller holds the lock."""
         prev_id = self._last_of_segment.get(int(kf.segment_id))
+        T_vo_kf = np.asarray(kf.T_vo_kf, dtype=float)
+        S_prev_k = None
         if prev_id is not None:
             prev = self._records[prev_id]
-            epoch, S_vo0_kf, consistent = resolve_epoch(self.history, prev.S_vo0_kf, prev.epoch,
-                                                        kf.T_vo_kf, kf.T_prevkf_kf, epoch)
+            epoch, S_prev_k, consistent = resolve_epoch(self.history, prev.T_vo_kf, prev.epoch,
+                                                        T_vo_kf, kf.T_prevkf_kf, epoch)
             if kf.T_prevkf_kf is not None and not consistent:
                 self._stats["epoch_mismatches"] += 1
                 log.warning("keyframe %d: T_vo_kf matches no recent VO frame; using the newest",
                             kf.kf_id)
-        else:
-            S_vo0_kf = self.history.to_epoch0(kf.T_vo_kf, epoch)
-        rec = _KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, S_vo0_kf)
+        rec = _KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, T_vo_kf)
         if prev_id is not None:
-            S_prev_k = relative_sim3(self._records[prev_id].S_vo0_kf, S_vo0_kf)
             guess = self.graph.estimate(prev_id) @ S_prev_k
             info = odometry_information(S_prev_k, kf.information, self.config)
             rec.step_length = max(float(np.linalg.norm(S_prev_k[:3, 3])), 1e-6)
             self.graph.add_keyframe(rec.kf_id, guess, prev_id, S_prev_k, info)
         elif self._newest_kf is None:
-            self.graph.add_keyframe(rec.kf_id, S_vo0_kf)
+            self.graph.add_keyframe(rec.kf_id, T_vo_kf)
         else:  # new tracking segment: the VO restarts from its last known pose, so link it to
             # the newest keyframe by a loose relative factor (a loop can tighten it later)
             last = self._records[self._newest_kf]
-            S_prev_k = relative_sim3(last.S_vo0_kf, S_vo0_kf)
-            guess = self.graph.estimate(last.kf_id) @ S_prev_k
-            t_len = float(np.linalg.norm(S_prev_k[:3, 3]))
+            S_last_k = relative_sim3(last.T_vo_kf, T_vo_kf, self.history.between(last.epoch, epoch))
+            guess = self.graph.estimate(last.kf_id) @ S_last_k
+            t_len = float(np.linalg.norm(S_last_k[:3, 3]))
             sig = np.array([0.2] * 3 + [max(t_len, 5.0 * last.step_length)] * 3 + [0.5])
-            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_prev_k, np.diag(1.0 / sig**2))
+            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_last_k, np.diag(1.0 / sig**2))
             self._stats["segment_links"] += 1
         self._records[rec.kf_id] = rec
         self._last_of_segment[rec.segment_id] = rec.kf_id

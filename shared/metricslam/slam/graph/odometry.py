@@ -3,12 +3,11 @@
 Units bookkeeping. Each keyframe's ``T_vo_kf`` is expressed in the local VO's world frame *at
 its marginalization time*. Every correction ``S_new_vo`` the back end hands out (applied by the
 pipeline through ``LocalVO.apply_similarity``) changes that frame and its units, so the VO frame
-has an *epoch* ``e`` = number of corrections issued so far, and ``C_e = S_e ⋯ S_1`` maps the
-epoch-0 VO frame into the epoch-``e`` VO frame. A keyframe received in epoch ``e_k`` has
-``S_vo0_kf = C_{e_k}⁻¹ · T_vo_kf`` in the common epoch-0 frame; its scale ``1 / scale(C_{e_k})``
-maps the keyframe's own units (those of its landmarks' ξ) to epoch-0 units. The odometry between
-keyframes ``j`` and ``k`` is then ``S_j_k = S_vo0_j⁻¹ · S_vo0_k`` (eq. 11's Ŝ), whose scale
-carries the unit change. Conventions: ``docs/conventions.md``.
+has an *epoch* ``e`` = number of corrections issued so far. ``M_{a→b} = S_b ⋯ S_{a+1}`` maps
+the epoch-``a`` VO frame into the epoch-``b`` frame. The odometry between keyframes ``j``
+(epoch ``e_j``) and ``k`` (epoch ``e_k``) is ``S_j_k = T_vo_j⁻¹ · M_{e_j→e_k}⁻¹ · T_vo_k``
+(eq. 11's Ŝ): it maps k's coordinates in k's units (those of its landmarks' ξ) into j's, and its
+scale carries the unit change. Conventions: ``docs/conventions.md``.
 """
 
 from __future__ import annotations
@@ -38,52 +37,61 @@ def orthonormalize(S: np.ndarray) -> np.ndarray:
 
 
 class VoFrameHistory:
-    """Cumulative corrections ``C_e`` (epoch-0 VO frame -> epoch-e VO frame). Thread-safe."""
+    """The corrections ``S_1, S_2, …`` handed out so far (``S_e`` maps the epoch ``e−1`` VO frame
+    to the epoch ``e`` frame). Thread-safe.
+
+    Only the corrections *between* two epochs are ever composed (:meth:`between`): composing
+    all of them into an epoch-0 frame is exact in algebra but not in floating point once the
+    VO's units have been rescaled thousands of times (the product's scale runs to 1e±40).
+    """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._C = [np.eye(4)]
-        self._C_inv = [np.eye(4)]
+        self._S: list[np.ndarray] = []
 
     @property
     def epoch(self) -> int:
         """Number of corrections issued so far (the epoch of keyframes arriving now)."""
         with self._lock:
-            return len(self._C) - 1
+            return len(self._S)
 
     def issue(self, S_new_vo: np.ndarray) -> int:
         """Record that ``S_new_vo`` (4, 4, VO epoch e -> e+1) was handed out; returns e+1."""
         S = orthonormalize(S_new_vo)
         with self._lock:
-            C = orthonormalize(S @ self._C[-1])
-            self._C.append(C)
-            self._C_inv.append(sim3.inverse(C))
-            return len(self._C) - 1
+            self._S.append(S)
+            return len(self._S)
 
-    def C(self, epoch: int) -> np.ndarray:
-        """``C_epoch`` (4, 4)."""
+    def between(self, e_from: int, e_to: int) -> np.ndarray:
+        """``M = S_{e_to} ⋯ S_{e_from+1}`` (4, 4): maps the epoch-``e_from`` VO frame into the
+        epoch-``e_to`` frame (identity when equal; the inverse map when ``e_to < e_from``)."""
         with self._lock:
-            if not 0 <= epoch < len(self._C):
-                raise GraphError(f"unknown VO epoch {epoch}; {len(self._C)} epochs exist")
-            return self._C[epoch].copy()
+            n = len(self._S)
+            if not (0 <= e_from <= n and 0 <= e_to <= n):
+                raise GraphError(f"unknown VO epoch ({e_from} -> {e_to}); {n + 1} epochs exist")
+            lo, hi = min(e_from, e_to), max(e_from, e_to)
+            factors = self._S[lo:hi]
+        M = np.eye(4)
+        for S in factors:
+            M = S @ M
+        M = orthonormalize(M)
+        return M if e_to >= e_from else sim3.inverse(M)
 
-    def to_epoch0(self, S_vo_x: np.ndarray, epoch: int) -> np.ndarray:
-        """Map a pose/similarity given in the epoch-``epoch`` VO frame into the epoch-0 frame."""
-        with self._lock:
-            if not 0 <= epoch < len(self._C_inv):
-                raise GraphError(f"unknown VO epoch {epoch}; {len(self._C_inv)} epochs exist")
-            C_inv = self._C_inv[epoch]
-        return orthonormalize(C_inv @ orthonormalize(S_vo_x))
 
+def relative_sim3(T_vo_j: np.ndarray, T_vo_k: np.ndarray, M_j_to_k: np.ndarray | None = None) -> np.ndarray:
+    """``S_j_k = T_vo_j⁻¹ · M⁻¹ · T_vo_k`` (4, 4): maps keyframe-k coordinates (k's units) into
+    keyframe-j coordinates (j's units).
 
-def relative_sim3(S_vo0_j: np.ndarray, S_vo0_k: np.ndarray) -> np.ndarray:
-    """``S_j_k = S_vo0_j⁻¹ S_vo0_k`` (4, 4): maps keyframe-k coordinates (k's units) into
-    keyframe-j coordinates (j's units)."""
-    return orthonormalize(sim3.inverse(S_vo0_j) @ S_vo0_k)
+    Args:
+        T_vo_j / T_vo_k: keyframe poses, each in the VO frame of its own epoch.
+        M_j_to_k: :meth:`VoFrameHistory.between` (j's epoch -> k's epoch); None if the same.
+    """
+    S_k_in_j_epoch = T_vo_k if M_j_to_k is None else sim3.inverse(M_j_to_k) @ T_vo_k
+    return orthonormalize(sim3.inverse(orthonormalize(T_vo_j)) @ orthonormalize(S_k_in_j_epoch))
 
 
 def resolve_epoch(
-    history: VoFrameHistory, S_vo0_j: np.ndarray, epoch_j: int, T_vo_kf: np.ndarray,
+    history: VoFrameHistory, T_vo_j: np.ndarray, epoch_j: int, T_vo_kf: np.ndarray,
     T_prevkf_kf: np.ndarray | None, epoch_now: int, max_back: int = 3, tol: float = 1e-3,
 ) -> tuple[int, np.ndarray, bool]:
     """The epoch keyframe ``k`` was *marginalized* in, which may precede its delivery.
@@ -92,25 +100,24 @@ def resolve_epoch(
     deliver the keyframe afterwards: its ``T_vo_kf`` is then in the previous frame. The VO's own
     ``T_prevkf_kf`` (relative to keyframe ``j``, frame-independent up to units) tells which
     epoch is consistent: for epoch ``e`` the odometry from ``T_vo_kf`` must equal ``T_prevkf_kf``
-    scaled by ``scale(C_{e_j}) / scale(C_e)``. Tries ``epoch_now, epoch_now − 1, …``.
+    in j's units, i.e. scaled by ``1 / scale(M_{e_j→e})``. Tries ``epoch_now, epoch_now − 1, …``.
 
     Returns:
-        ``(epoch_k, S_vo0_k, consistent)``; with ``consistent=False`` (no ``T_prevkf_kf`` or no
+        ``(epoch_k, S_j_k, consistent)``; with ``consistent=False`` (no ``T_prevkf_kf`` or no
         epoch matches) ``epoch_now`` is used.
     """
-    S_now = history.to_epoch0(T_vo_kf, epoch_now)
+    S_now = relative_sim3(T_vo_j, T_vo_kf, history.between(epoch_j, epoch_now))
     if T_prevkf_kf is None:
         return epoch_now, S_now, False
     T_p = np.asarray(T_prevkf_kf, dtype=float)
-    s_j = sim3.scale(history.C(epoch_j))
     for e in range(epoch_now, max(epoch_j, epoch_now - max_back) - 1, -1):
-        S_k = S_now if e == epoch_now else history.to_epoch0(T_vo_kf, e)
-        r = s_j / sim3.scale(history.C(e))
+        M = history.between(epoch_j, e)
+        S_rel = S_now if e == epoch_now else relative_sim3(T_vo_j, T_vo_kf, M)
+        r = 1.0 / sim3.scale(M)
         S_expected = orthonormalize(sim3.from_rts(T_p[:3, :3], r * T_p[:3, 3], r))
-        S_rel = relative_sim3(S_vo0_j, S_k)
         err = float(np.linalg.norm(sim3.local(S_expected, S_rel)))
         if err < tol * (1.0 + float(np.linalg.norm(S_rel[:3, 3]))):
-            return e, S_k, True
+            return e, S_rel, True
     return epoch_now, S_now, False
 
 
