@@ -23,7 +23,7 @@ Blocks (all 3x3 convs, ReLU):
 * upsampler: stride-2 transposed conv of the coarser level's fused features and bilinear
   upsampling of its disparity; L5..L3 concatenate their own features with both.
 
-Parameter count: see :func:`count_parameters` (≈ 1.4 M with the defaults, vs the paper's
+Parameter count: see :func:`count_parameters` (1,597,672 with the defaults, vs the paper's
 2.3 M; the text does not specify the difference, DESIGN.md notes the same gap).
 
 Example::
