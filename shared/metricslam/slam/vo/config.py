@@ -53,7 +53,7 @@ class VOConfig(BaseModel):
 
     # --- window BA ---
     window_size: int = Field(10, ge=3, description="keyframes kept in the sliding window")
-    ba_iterations: int = Field(6, ge=1, description="LM iterations per window solve")
+    ba_iterations: int = Field(3, ge=1, description="LM iterations per window solve (re-solved at every keyframe)")
     huber_px: float = Field(1.5, gt=0, description="Huber threshold of reprojection residuals")
     min_landmark_parallax_deg: float = Field(
         0.3, ge=0, description="a new landmark needs this much ray angle to get a depth")
