@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import zenoh
@@ -9,6 +10,8 @@ import zenoh
 from metricslam.datasets.base import Sequence
 from metricslam.errors import ConfigError, ServiceError
 from metricslam_slam.client import FramePublisher, PoseRecorder, query_health
+
+log = logging.getLogger(__name__)
 
 
 def wait_for_service(session: zenoh.Session, timeout_s: float, endpoint: str = "") -> None:
@@ -27,8 +30,9 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     """Publish frames ``start..stop-1`` at ``rate_hz`` (0 = as fast as possible).
 
     ``max_in_flight > 0`` adds back-pressure: frame ``k`` goes out only once poses of all but
-    ``max_in_flight`` of the frames published before it arrived (a bounded wait, so a dropped
-    frame cannot stall the replay). Returns the number of frames published.
+    ``max_in_flight`` of the frames published before it arrived; after one 10 s wait without
+    progress back-pressure is switched off, so dropped frames or a dead service cannot stall the
+    replay. Returns the number of frames published.
     """
     from tqdm import tqdm
 
@@ -49,9 +53,11 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
                 delay = t_start + k * period_s - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            if recorder is not None:
-                recorder.wait_for(lambda r: sum(j >= start for j in r.poses) >= k - max_in_flight,
-                                  timeout_s=10.0)
+            if recorder is not None and not recorder.wait_for(
+                    lambda r: sum(j >= start for j in r.poses) >= k - max_in_flight, timeout_s=10.0):
+                log.warning("no poses for 10 s: back-pressure off for the rest of the replay")
+                recorder.close()
+                recorder = None
             publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)
     finally:
         publisher.close()
