@@ -17,6 +17,7 @@ class LoopConfig(BaseModel):
     n_orb_features: int = Field(default=500, gt=0)
     image_scale: float = Field(default=0.5, gt=0, le=1)  # ORB runs on the image resized by this
     keyframe_stride: int = Field(default=2, ge=1)  # only every n-th keyframe is indexed/queried
+    fast_corners: int = Field(default=0, ge=0)  # experimental: FAST corners borrowing nearby landmark depth
     vocabulary_words: int = Field(default=400, gt=8)
     vocabulary_train_keyframes: int = Field(default=12, gt=0)
     skip_recent_keyframes: int = Field(default=30, ge=1)

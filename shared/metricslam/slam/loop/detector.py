@@ -40,6 +40,7 @@ class LoopDetector:
         self._calls = 0
         self._orb = cv2.ORB_create(nfeatures=self.config.n_orb_features, nlevels=4, fastThreshold=12)
         self._orb_landmarks = cv2.ORB_create(nlevels=1)
+        self._fast = cv2.FastFeatureDetector_create(threshold=20, nonmaxSuppression=True)
         self._vocab: BinaryVocabulary | None = None
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
@@ -68,8 +69,13 @@ class LoopDetector:
             gray, (round(gray.shape[1] * f), round(gray.shape[0] * f)), interpolation=cv2.INTER_AREA)
         _, desc = self._orb.detectAndCompute(small, None)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
+        extra = None
+        if self.config.fast_corners > 0:
+            kps = self._fast.detect(gray, None)
+            kps = sorted(kps, key=lambda k: -k.response)[: self.config.fast_corners]
+            extra = np.array([k.pt for k in kps], dtype=float).reshape(-1, 2)
         self._features[kf_id] = landmark_features(self._orb_landmarks, gray, camera, landmarks_uv_px,
-                                                  landmarks_inv_depth)
+                                                  landmarks_inv_depth, extra_uv_px=extra)
         self._order.append(kf_id)
         if self._vocab is None:
             self._pending.append((kf_id, desc))

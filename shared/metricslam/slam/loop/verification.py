@@ -29,22 +29,42 @@ class LandmarkFeatures:
     uv_px: np.ndarray  # (K, 2)
     points: np.ndarray  # (K, 3) in the keyframe camera frame, keyframe units
     descriptors: np.ndarray  # (K, 32) uint8
+    exact: np.ndarray | None = None  # (K,) True for VO landmarks, False for borrowed depths
 
 
 def landmark_features(orb: cv2.ORB, image_gray: np.ndarray, camera: PinholeCamera,
-                      uv_px: np.ndarray, inv_depth: np.ndarray) -> LandmarkFeatures:
-    """Describe landmarks (M, 2) with ORB (upright, 31 px patch); drops border/invalid ones."""
+                      uv_px: np.ndarray, inv_depth: np.ndarray,
+                      extra_uv_px: np.ndarray | None = None,
+                      radius_px: float | None = None) -> LandmarkFeatures:
+    """Describe landmarks (M, 2) with ORB (upright, 31 px patch); drops border/invalid ones.
+
+    ``extra_uv_px`` (K, 2): more corners (e.g. FAST) that borrow the median ξ of the landmarks
+    within ``radius_px`` (default 3 % of the image width); those without a landmark nearby are
+    dropped. Two keyframes at one place rarely share many VO corners, but they share FAST
+    corners; a wrong borrowed depth is just an outlier for the RANSAC below.
+    """
     uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
     xi = np.asarray(inv_depth, dtype=float).reshape(-1)
     ok = np.isfinite(uv).all(axis=1) & np.isfinite(xi) & (xi > 0)
-    idx = np.flatnonzero(ok)
-    kps = [cv2.KeyPoint(float(uv[i, 0]), float(uv[i, 1]), 31.0, 0.0, 0.0, 0, int(i)) for i in idx]
+    uv, xi = uv[ok], xi[ok]
+    n_exact = len(uv)
+    if extra_uv_px is not None and len(extra_uv_px) and len(uv):
+        from scipy.spatial import cKDTree
+
+        r = radius_px if radius_px is not None else max(8.0, 0.03 * camera.width_px)
+        extra = np.asarray(extra_uv_px, dtype=float).reshape(-1, 2)
+        neigh = cKDTree(uv).query_ball_point(extra, r)
+        got = [(e, float(np.median(xi[n]))) for e, n in zip(extra, neigh) if n]
+        if got:
+            uv = np.vstack([uv, np.array([g[0] for g in got])])
+            xi = np.concatenate([xi, np.array([g[1] for g in got])])
+    kps = [cv2.KeyPoint(float(uv[i, 0]), float(uv[i, 1]), 31.0, 0.0, 0.0, 0, int(i)) for i in range(len(uv))]
     kps, desc = orb.compute(image_gray, kps)
     if desc is None or not kps:
         return LandmarkFeatures(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
     keep = np.array([kp.class_id for kp in kps], dtype=int)
     pts = camera.unproject(uv[keep], 1.0 / xi[keep])
-    return LandmarkFeatures(uv[keep], pts, desc)
+    return LandmarkFeatures(uv[keep], pts, desc, keep < n_exact)
 
 
 @dataclass(frozen=True)
@@ -96,8 +116,15 @@ def verify(new: LandmarkFeatures, old: LandmarkFeatures, camera: PinholeCamera, 
             best = inl
     if best.sum() < max(config.min_inliers, 3):
         return None
+    # final fit on pairs whose depths are both VO landmarks when there are enough of them
+    # (borrowed depths verify the place; they are too coarse to measure the Sim(3))
+    fit = best
+    if new.exact is not None and old.exact is not None:
+        both = best & new.exact[pairs[:, 0]] & old.exact[pairs[:, 1]]
+        if both.sum() >= 6:
+            fit = both
     try:
-        S = umeyama(p_new[best], p_old[best], with_scale=True)
+        S = umeyama(p_new[fit], p_old[fit], with_scale=True)
     except AlignmentError:
         return None
     inl = _two_way_errors(S, p_new, p_old, uv_new, uv_old, camera) < config.reprojection_threshold_px
