@@ -8,6 +8,7 @@ drop-oldest queues, malformed frames counted and dropped without killing the ser
 from __future__ import annotations
 
 import time
+import zlib
 
 import numpy as np
 import pytest
@@ -45,7 +46,7 @@ class SlowSession(IdentitySession):
 @pytest.fixture()
 def stack(request):
     """(router endpoint, client session, start_service(factory, **settings))."""
-    port = 17400 + request.node.name.__hash__() % 40  # distinct per test, inside our range
+    port = 17400 + zlib.crc32(request.node.name.encode()) % 40  # distinct per test, in our range
     endpoint = f"tcp/127.0.0.1:{port}"
     router = open_router(endpoint)
     client = open_client(endpoint)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError
 from metricslam.slam.types import TrackingState
-from metricslam.wire import codec, keys
+from metricslam.wire import keys
 from metricslam.wire.codec import (
     CalibrationMessage, FrameMessage, KeyframeMessage, PoseMessage, StatusMessage,
     TrajectoryMessage, decode, decode_as, encode,
