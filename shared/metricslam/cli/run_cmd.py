@@ -59,7 +59,9 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.trajectory.io import write_kitti_poses
 
     seq = open_sequence(args.seq_dir)
-    preset = args.preset or _PRESET_BY_FORMAT.get(detect_format(args.seq_dir), "kitti")
+    synth = (Path(args.seq_dir) / "depth_0").is_dir()  # `metricslam synth` output
+    preset = args.preset or (
+        "synth" if synth else _PRESET_BY_FORMAT.get(detect_format(args.seq_dir), "kitti"))
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
