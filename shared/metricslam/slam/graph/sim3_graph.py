@@ -197,7 +197,8 @@ class GlobalPoseGraph:
 
     # -- solving ------------------------------------------------------------------------------
     def solve(self, extra_iterations: int | None = None) -> dict:
-        """Push pending factors into ISAM2 and iterate; re-check new loops afterwards.
+        """Push pending factors into ISAM2 and iterate (with a new loop: batch LM + fresh ISAM2);
+        re-check new loops afterwards.
 
         Returns:
             ``{"loops_removed": n, "iterations": n}``.
@@ -205,22 +206,24 @@ class GlobalPoseGraph:
         extra = self.config.extra_iterations if extra_iterations is None else extra_iterations
         kinds = self._pending_kinds
         has_loop = any(isinstance(k, tuple) for k in kinds)
-        try:
-            result = self._isam.update(self._new_factors, self._new_values)
-            new_idx = list(result.getNewFactorsIndices())
-            for idx, kind in zip(new_idx, kinds):
-                self._factor_kinds[idx] = kind
-                if isinstance(kind, tuple):
-                    self._loop_indices[idx] = kind[1:]
-        except RuntimeError as exc:  # ill-conditioned incremental step: rebuild from a batch solve
-            log.warning("ISAM2 update failed (%s); rebuilding from a batch solve",
-                        str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+        n_iter = 1
+        if has_loop:  # a loop moves the whole map: one batch LM beats many relinearized updates
             self._rebuild()
-            self.n_rebuilds += 1
+        else:
+            try:
+                result = self._isam.update(self._new_factors, self._new_values)
+                for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
+                    self._factor_kinds[idx] = kind
+            except RuntimeError as exc:  # ill-conditioned incremental step: rebuild from batch
+                log.warning("ISAM2 update failed (%s); rebuilding from a batch solve",
+                            str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+                self._rebuild()
+                self.n_rebuilds += 1
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._pending_kinds = []
-        n_iter = 1 + self._iterate(max(extra, 8) if has_loop else extra, stop_when_converged=has_loop)
+        if not has_loop:
+            n_iter += self._iterate(extra, stop_when_converged=False)
         removed = self._reject_inconsistent_loops() if has_loop else 0
         self._refresh_latest(all_keys=has_loop or removed > 0)
         return {"loops_removed": removed, "iterations": n_iter}
@@ -281,9 +284,7 @@ class GlobalPoseGraph:
         if bad:
             log.info("removing %d loop factor(s) inconsistent after the solve", len(bad))
             self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), bad)
-            self._iterate(max(self.config.extra_iterations, 8), stop_when_converged=True)
-            for idx in bad:
-                self._loop_indices.pop(idx, None)
+            self._rebuild()  # re-solve without them (batch, fresh ISAM2, loop indices renumbered)
             self.n_loops_accepted -= len(bad)
             self.n_loops_rejected += len(bad)
         return len(bad)
