@@ -46,6 +46,7 @@ _PRESET_BY_FORMAT = {"kitti": "kitti", "kitti_raw_depth": "kitti", "euroc": "eur
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import logging
     import time
     from pathlib import Path
 
@@ -72,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
         except ImportError as exc:  # pragma: no cover - only before the back end landed
             raise ConfigError("metric mode not available yet: use --vo-only") from exc
         backend = make_backend(seq.camera, use_scale=not args.no_scale, model_path=args.model)
-    pipeline = SlamPipeline(seq.camera, VOConfig.preset(preset), backend=backend)
+    vo_config = VOConfig.preset(preset)
+    logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
+                                             vo_config.model_dump())
+    pipeline = SlamPipeline(seq.camera, vo_config, backend=backend)
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",

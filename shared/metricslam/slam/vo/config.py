@@ -57,7 +57,6 @@ class VOConfig(BaseModel):
     huber_px: float = Field(1.5, gt=0, description="Huber threshold of reprojection residuals")
     min_landmark_parallax_deg: float = Field(
         0.3, ge=0, description="a new landmark needs this much ray angle to get a depth")
-    max_landmarks_per_keyframe: int = Field(300, ge=10, description="child landmarks kept per KF")
     ba_in_background: bool = Field(True, description="solve the window in a worker thread")
     keyframe_waits_for_ba: bool = Field(
         True, description="a new keyframe waits for the solve still running (at most one in "
