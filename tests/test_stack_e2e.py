@@ -159,3 +159,28 @@ def test_up_replay_poses_with_depth_outage(synth_seq: Path, tmp_path: Path) -> N
     T_gt = open_sequence(synth_seq).T_world_cam_gt
     scale_error_pct = 100 * abs(_path_length_m(optimized.T_world_cam) / _path_length_m(T_gt) - 1)
     assert scale_error_pct <= SCALE_TOL_PCT, f"scale error {scale_error_pct:.1f} %"
+
+
+def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
+    """SIGKILL on `up` (no chance to clean up): its children still go (PR_SET_PDEATHSIG)."""
+    up = subprocess.Popen(CLI + ["up", "--zenoh-endpoint", "tcp/127.0.0.1:17455", "--no-scale",
+                                 "--session", "identity"],
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    lines = _Lines(up)
+    try:
+        pids = [int(lines.wait(name, 60).split("pid")[1].split()[0])
+                for name in ("zenoh-router", "slam-service")]
+        lines.wait("UP:", 30)
+    finally:
+        up.kill()
+        up.wait()
+    deadline = time.monotonic() + 20
+    alive = pids
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.2)
+        alive = [pid for pid in pids if Path(f"/proc/{pid}").exists()
+                 and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]]
+    for pid in alive:  # do not leak processes when the check fails
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, f"children still running after the launcher was killed: {alive}"

@@ -7,13 +7,14 @@ is ready (router: TCP port open; depth: ``/readyz`` 200; SLAM: answers
 dies is restarted after ``restart_delay_s`` (like compose's ``restart: unless-stopped``), so
 killing the depth service degrades the stack (no new scale factors) instead of ending it.
 SIGINT/SIGTERM stop the children in reverse order (SIGTERM, then SIGKILL after a grace period).
-Children get ``PR_SET_PDEATHSIG`` so they never outlive a killed launcher.
+Children are started through ``metricslam_slam.child`` (``PR_SET_PDEATHSIG``) so they never
+outlive a killed launcher.
 """
 
 from __future__ import annotations
 
-import ctypes
 import logging
+import os
 import signal
 import socket
 import subprocess
@@ -29,14 +30,6 @@ from metricslam.errors import ServiceError
 from metricslam_slam.zenoh_config import check_endpoint
 
 log = logging.getLogger(__name__)
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
 
 
 @dataclass
@@ -57,8 +50,9 @@ class Child:
         if self.log_path:
             self._log_file = open(self.log_path, "ab")
             out = self._log_file
-        self.process = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+        wrapped = [sys.executable, "-m", "metricslam_slam.child", str(os.getpid()), "--", *self.argv]
+        self.process = subprocess.Popen(wrapped, stdout=out, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL)
 
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
