@@ -231,3 +231,18 @@ def test_gauge_basis_spans_the_hessian_null_space_and_is_projected_out() -> None
     assert np.abs(prior.H @ N).max() < 1e-9 * np.abs(prior.H).max()
     assert np.abs(N.T @ prior.b).max() < 1e-9
     assert np.linalg.matrix_rank(prior.H) == 24 - 7
+
+
+def test_pnp_relocalization_recovers_a_pose_far_from_any_prediction() -> None:
+    from metricslam.slam.vo.motion_only import relocalize_pnp
+    w = make_window(8)
+    K = w.problem.K
+    T_true = se3.retract(w.T_world_kf_true[3], np.r_[0.3, -0.2, 0.1, 1.0, 0.5, 2.0])
+    rng = np.random.default_rng(8)
+    p_cam = rng.uniform([-8, -3, 4], [8, 3, 40], size=(60, 3))
+    p_world = se3.transform_points(T_true, p_cam)
+    uv = (p_cam[:, :2] / p_cam[:, 2:]) * np.diag(K)[:2] + K[:2, 2]
+    uv[:6] = rng.uniform(0, 600, (6, 2))  # gross outliers
+    T, inl = relocalize_pnp(p_world, uv, K, huber_px=1.5, iterations=10)
+    assert np.abs(se3.local(T_true, T)).max() < 1e-6
+    assert inl[6:].all() and not inl[:6].any()

@@ -32,7 +32,7 @@ from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.frontend import KLTFrontend
 from metricslam.slam.vo.initializer import InitResult, try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
-from metricslam.slam.vo.motion_only import estimate_pose
+from metricslam.slam.vo.motion_only import estimate_pose, relocalize_pnp
 from metricslam.slam.vo.window import BAWorker, Keyframe, SlidingWindow
 
 log = logging.getLogger(__name__)
@@ -341,6 +341,11 @@ class LocalVO:
             mask, p_world = self.map.points_world(tracks.ids, self.window.poses_by_kf())
         T_world_cam, inl = estimate_pose(T_pred, p_world, tracks.uv_px[mask], self.camera.K,
                                          cfg.huber_px, cfg.pose_iterations)
+        if int(inl.sum()) < cfg.min_tracked_landmarks:  # sudden motion: try without the prediction
+            found = relocalize_pnp(p_world, tracks.uv_px[mask], self.camera.K, cfg.huber_px,
+                                   cfg.pose_iterations)
+            if found is not None and int(found[1].sum()) > int(inl.sum()):
+                T_world_cam, inl = found
         t2 = time.perf_counter()
         self.timings_ms["frontend"].append(1e3 * (t1 - t0))
         self.timings_ms["pose"].append(1e3 * (t2 - t1))

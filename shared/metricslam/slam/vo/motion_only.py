@@ -7,6 +7,7 @@ so ``q = R_cam_world p_world + t_cam_world`` and ``J_target`` is the pose Jacobi
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from metricslam.slam.vo import lie
@@ -48,3 +49,21 @@ def estimate_pose(T_world_cam: np.ndarray, p_world: np.ndarray, uv_px: np.ndarra
     pr = project(eye, np.repeat(T[None], n, axis=0), p_world, rho, uv_px, K, with_jacobians=False)
     inl = pr.valid & (np.linalg.norm(pr.residual_px, axis=1) < 3.0 * huber_px)
     return T, inl
+
+
+def relocalize_pnp(p_world: np.ndarray, uv_px: np.ndarray, K: np.ndarray, huber_px: float,
+                   iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """PnP-RANSAC (OpenCV) + :func:`estimate_pose` refinement, for when the motion model's
+    prediction was too far off (sudden motion). Returns ``(T_world_cam, inliers)`` or None."""
+    if len(p_world) < 6:
+        return None
+    ok, rvec, tvec, _ = cv2.solvePnPRansac(p_world.astype(np.float64), uv_px.astype(np.float64),
+                                           K, None, iterationsCount=200,
+                                           reprojectionError=3.0 * huber_px,
+                                           flags=cv2.SOLVEPNP_EPNP)
+    if not ok:
+        return None
+    T_cam_world = np.eye(4)
+    T_cam_world[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T_cam_world[:3, 3] = tvec.ravel()
+    return estimate_pose(lie.inverse(T_cam_world[None])[0], p_world, uv_px, K, huber_px, iterations)
