@@ -9,8 +9,8 @@ ms. gtsam would need Python ``CustomFactor``s for this residual (measured slow, 
 give exact Schur-complement marginalization (``marginalization.py``) for free.
 
 Gauge: the window is invariant to a 7-D similarity. The first pose is held fixed (6-D) and LM's
-damping keeps the remaining scale direction still; a marginalization prior, when present,
-constrains it too.
+damping keeps the remaining scale direction still (the marginalization prior carries no
+information along gauge directions, see ``marginalization.project_out_gauge``).
 """
 
 from __future__ import annotations
