@@ -20,9 +20,10 @@ $(STAMP): pyproject.toml | $(BIN)/python
 
 install: $(STAMP)
 
-# Tests also need the dev tools and the training extra (torch CPU wheel, pinned).
+# Tests also need the dev tools, the training extra (torch CPU wheel, pinned) and the viz extra
+# (rerun-sdk, so the live-view recording test runs).
 $(VENV)/.installed-dev: $(STAMP) pyproject.toml
-	$(BIN)/pip install -q -e '.[dev,train]'
+	$(BIN)/pip install -q -e '.[dev,train,viz]'
 	@touch $@
 
 install-dev: $(VENV)/.installed-dev
