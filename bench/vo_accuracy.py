@@ -89,9 +89,10 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, load average {load:.1f} at start, Python {platform.python_version()}"
 
 
-def to_markdown(rows: list[dict], command: str, host: str) -> str:
+def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> str:
     out = ["# Local VO accuracy and speed", "",
            f"Command: `{command}`", "", f"Machine: {host}", "",
+           *[f"* {n}" for n in notes], *([""] if notes else []),
            "VO alone (no global graph, no learned scale); ATE after Sim(3) alignment, as % of the "
            "ground-truth path length; r_rel is the KITTI devkit rotational error (deg/100 m) over "
            "the segment lengths that fit (10..50 m for these short extracts). Frames/s excludes PNG "
@@ -127,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="window BA in a worker thread (the default of the library), in the "
                     "tracking thread (deterministic), or both")
     ap.add_argument("--out", type=Path, default=Path("bench/results/vo.md"))
+    ap.add_argument("--note", action="append", default=[],
+                    help="provenance line for the report, e.g. how a synthetic sequence was made")
     args = ap.parse_args(argv)
     host = machine()
     rows = []
@@ -139,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(r)
     command = "python bench/vo_accuracy.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(to_markdown(rows, command, host))
+    args.out.write_text(to_markdown(rows, command, host, args.note))
     args.out.with_suffix(".json").write_text(json.dumps({"command": command, "machine": host,
                                                          "results": rows}, indent=2, default=float) + "\n")
     print(f"wrote {args.out}")
