@@ -40,13 +40,24 @@ def kitti06(shared_data):
     return KittiOdometry(seq_dir, shared_data / "kitti_odometry" / "poses" / "06.txt")
 
 
-@pytest.mark.slow
-def test_revisit_detected_with_correct_sim3(kitti06):
-    det = LoopDetector(CONFIG)
-    frames = list(range(0, 42, 3))  # 14 keyframes, ~1.2 m apart at the start
-    for kf_id, i in enumerate(frames):
+FRAMES = list(range(0, 42, 3))  # 14 keyframes, ~1.2 m apart at the start
+
+
+@pytest.fixture(scope="module")
+def kitti06_keyframes(kitti06):
+    """(frame, landmark pixels, inverse depths) of the database keyframes, computed once."""
+    out = []
+    for i in FRAMES:
         f = kitti06[i]
-        uv, xi = _landmarks(f)
+        out.append((f, *_landmarks(f)))
+    return out
+
+
+@pytest.mark.slow
+def test_revisit_detected_with_correct_sim3(kitti06, kitti06_keyframes):
+    det = LoopDetector(CONFIG)
+    frames = FRAMES
+    for kf_id, (f, uv, xi) in enumerate(kitti06_keyframes):
         assert det.add_and_query(kf_id, f.image, f.camera, uv, xi) == []  # nothing old enough
     q = kitti06[1]  # back near the start
     uv, xi = _landmarks(q)
@@ -62,14 +73,12 @@ def test_revisit_detected_with_correct_sim3(kitti06):
 
 
 @pytest.mark.slow
-def test_new_place_is_not_a_loop(kitti06, shared_data):
+def test_new_place_is_not_a_loop(kitti06_keyframes, shared_data):
     from metricslam.datasets.kitti import KittiOdometry
 
     det = LoopDetector(CONFIG)
-    frames = list(range(0, 42, 3))
-    for kf_id, i in enumerate(frames):
-        f = kitti06[i]
-        det.add_and_query(kf_id, f.image, f.camera, *_landmarks(f))
+    for kf_id, (f, uv, xi) in enumerate(kitti06_keyframes):
+        det.add_and_query(kf_id, f.image, f.camera, uv, xi)
     seq01 = shared_data / "kitti_odometry" / "sequences" / "01"
     if not seq01.is_dir():
         pytest.skip(f"{seq01} is absent")
