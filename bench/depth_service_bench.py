@@ -156,6 +156,10 @@ def main(argv: list[str] | None = None) -> int:
     results: list[RunResult] = []
     soak: dict[str, object] = {}
     with ServiceProcess(args.port, settings=server_settings) as service:
+        conn = http.client.HTTPConnection("127.0.0.1", args.port, timeout=30)
+        conn.request("GET", "/v1/model")
+        server_settings["model"] = json.loads(conn.getresponse().read())["model_id"]
+        conn.close()
         run_level(args.port, frames, 2, True, 100, service.pid)  # warm up (first-call allocations, caches)
         rss_start = rss_mib(service.pid)
         for clients in args.clients:
@@ -216,7 +220,8 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         "",
         f"Input: {n_frames} real KITTI PNG frames ({shape[1]}x{shape[0]} gray), POST /v1/disparity, "
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
-        f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items())} (other settings default).",
+        f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items() if k != 'model')} "
+        f"(other settings default), serving model `{server_settings.get('model')}`.",
         "",
         "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | server CPU ms/req | client CPU ms/req | statuses |",
         "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
