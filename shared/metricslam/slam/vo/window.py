@@ -277,6 +277,8 @@ class SlidingWindow:
                 self.outbox[k] = dataclasses.replace(
                     mkf, T_vo_kf=warp(mkf.T_vo_kf), T_prevkf_kf=rel,
                     landmarks_inv_depth=mkf.landmarks_inv_depth / s)
+                # the owner rescales anchors of undelivered keyframes: their poses follow too
+                self.frozen_poses[mkf.frame_index] = self.outbox[k].T_vo_kf.copy()
             self.warps.append(S.copy())
         return warp
 
