@@ -86,7 +86,14 @@ class GlobalBackend:
         self._cv = threading.Condition()
         self._incoming: collections.deque = collections.deque()  # (kf, epoch)
         self._depth_requests: collections.deque = collections.deque()
-        self._scale_results: collections.deque = collections.deque()  # (kf_id, scales)
+        self._scale_results: collections.deque = collections.deque()  # (kf_id, scales, inv_map)
+        # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
+        # finished depth requests (kf_id -> map or None on failure) and dropped request ids
+        self._loop_waiting: collections.deque = collections.deque()
+        self._depth_done: dict[int, np.ndarray | None] = {}
+        self._depth_dropped_ids: set[int] = set()
+        self._loops_verified = 0
+        self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
         self._pending_scales: dict[int, np.ndarray] = {}
         self._records: dict[int, _KeyframeRecord] = {}
         self._last_of_segment: dict[int, int] = {}
@@ -117,10 +124,12 @@ class GlobalBackend:
             with self._lock:
                 self._integrate(kf, epoch)
                 if self.depth_source is not None:
-                    res = self._measure_scale(kf.kf_id, kf.image, kf.camera, kf.landmarks_uv_px,
-                                              kf.landmarks_inv_depth)
-                    if res is not None:
-                        self._pending_scales[kf.kf_id] = res
+                    scales, inv_map = self._measure_scale(kf.kf_id, kf.image, kf.camera,
+                                                          kf.landmarks_uv_px, kf.landmarks_inv_depth)
+                    if scales is not None:
+                        self._pending_scales[kf.kf_id] = scales
+                    self._depth_done[kf.kf_id] = inv_map
+                self._run_loop_queries(final=False)
                 self._flush_scales()
                 self._solve()
             return
@@ -128,7 +137,8 @@ class GlobalBackend:
             self._incoming.append((kf, epoch))
             if self.depth_source is not None:
                 if len(self._depth_requests) >= self.config.depth_queue_size:
-                    self._depth_requests.popleft()
+                    dropped = self._depth_requests.popleft()
+                    self._depth_dropped_ids.add(int(dropped[0]))
                     self._stats["depth_dropped"] += 1
                 self._depth_requests.append((kf.kf_id, kf.image, kf.camera, kf.landmarks_uv_px,
                                              kf.landmarks_inv_depth))
@@ -201,7 +211,10 @@ class GlobalBackend:
             for t in self._threads:
                 t.join(timeout=5.0)
         with self._lock:
+            self._run_loop_queries(final=True)
             self._flush_scales()
+            if self._pending_loops:
+                self._solve()
             try:
                 self.graph.solve(extra_iterations=max(self.config.extra_iterations, 5))
                 self._offer_correction()
@@ -221,6 +234,9 @@ class GlobalBackend:
             "loops_accepted": len(loops),
             "loops_rejected": self.graph.n_loops_rejected,
             "loops": [(lp.frame_old, lp.frame_new) for lp in loops],
+            "loop_keyframes": [(lp.kf_old, lp.kf_new) for lp in loops],
+            "loop_inliers": [lp.n_inliers for lp in loops],
+            "loops_verified": self._loops_verified,
             "depth_requests": self._stats["depth_requests"],
             "depth_failures": self._stats["depth_failures"],
             "depth_dropped": self._stats["depth_dropped"],
@@ -236,8 +252,10 @@ class GlobalBackend:
         }
 
     # -- work ---------------------------------------------------------------------------------
-    def _measure_scale(self, kf_id, image, camera, uv_px, inv_depth) -> np.ndarray | None:
-        """Depth request -> per-landmark scale measurements (None on failure)."""
+    def _measure_scale(self, kf_id, image, camera, uv_px, inv_depth) -> tuple[np.ndarray | None,
+                                                                              np.ndarray | None]:
+        """Depth request -> (per-landmark scale measurements, the metric inverse-depth map
+        (h, w) 1/m kept for loop verification); ``(None, None)`` on failure."""
         from metricslam.depth.sample import sample_map
 
         self._stats["depth_requests"] += 1
@@ -249,16 +267,16 @@ class GlobalBackend:
         except MetricSlamError as exc:  # DepthSourceError, ImageError: skip this keyframe
             self._stats["depth_failures"] += 1
             log.warning("no scale factors for keyframe %d: %s", kf_id, exc)
-            return None
+            return None, None
         except Exception as exc:  # a foreign source must never kill the worker
             self._stats["depth_failures"] += 1
             log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf_id, exc)
-            return None
+            return None, None
         self._depth_ms.append(1e3 * (time.perf_counter() - t0))
-        return scale_measurements(inv_depth, z, self.config)
+        return scale_measurements(inv_depth, z, self.config), np.asarray(inv_map, dtype=np.float32)
 
     def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
-        """Insert one keyframe (odometry or prior), then query loops. Caller holds the lock."""
+        """Insert one keyframe (odometry or prior) and queue its loop query. Caller holds the lock."""
         prev_id = self._last_of_segment.get(int(kf.segment_id))
         T_vo_kf = np.asarray(kf.T_vo_kf, dtype=float)
         S_prev_k = None
@@ -291,16 +309,38 @@ class GlobalBackend:
         self._last_of_segment[rec.segment_id] = rec.kf_id
         self._newest_kf = rec.kf_id
         if self.loop_detector is not None:
+            self._loop_waiting.append(kf)
+
+    def _run_loop_queries(self, final: bool) -> None:
+        """Query loops for waiting keyframes, in order, once each has its depth map (scale mode;
+        a failed or dropped depth request, or ``final``, lets it go without). Caller holds the
+        lock."""
+        while self._loop_waiting:
+            kf = self._loop_waiting[0]
+            k = int(kf.kf_id)
+            if self.depth_source is None or k in self._depth_done:
+                inv_map = self._depth_done.pop(k, None)
+            elif final or k in self._depth_dropped_ids or any(d > k for d in self._depth_done):
+                self._depth_dropped_ids.discard(k)
+                inv_map = None
+            else:
+                return
+            self._loop_waiting.popleft()
             t0 = time.perf_counter()
             try:
                 candidates = self.loop_detector.add_and_query(
-                    rec.kf_id, kf.image, kf.camera, kf.landmarks_uv_px, kf.landmarks_inv_depth)
+                    k, kf.image, kf.camera, kf.landmarks_uv_px, kf.landmarks_inv_depth,
+                    inv_depth_map=inv_map, T_prevkf_kf=kf.T_prevkf_kf)
             except MetricSlamError as exc:
-                log.warning("loop detection failed on keyframe %d: %s", rec.kf_id, exc)
+                log.warning("loop detection failed on keyframe %d: %s", k, exc)
                 candidates = []
             self._loop_ms.append(1e3 * (time.perf_counter() - t0))
-            for cand in candidates:
-                self._add_loop(cand)
+            self._loops_verified += len(candidates)
+            # added after the next solve: the gate needs both keyframes inside ISAM2 (their
+            # joint marginal); the newest keyframe is only pending until then
+            self._pending_loops.extend(candidates)
+        if self.loop_detector is None:
+            self._depth_done.clear()
 
     def _add_loop(self, cand) -> None:
         step = self._records[cand.kf_old].step_length
@@ -324,6 +364,12 @@ class GlobalBackend:
         n_before = self.graph.n_scale_factors
         try:
             res = self.graph.solve()
+            if self._pending_loops:  # gate against the solved graph, then solve with the loops
+                for cand in self._pending_loops:
+                    self._add_loop(cand)
+                self._pending_loops = []
+                res2 = self.graph.solve()
+                res = {**res2, "loops_removed": res["loops_removed"] + res2["loops_removed"]}
         except GraphError as exc:
             log.warning("global solve failed: %s", exc)
             return
@@ -346,13 +392,12 @@ class GlobalBackend:
                     return
                 req = self._depth_requests.popleft()
                 self._busy += 1
-            res = None
+            res = (None, None)
             try:
                 res = self._measure_scale(*req)
             finally:
                 with self._cv:
-                    if res is not None:
-                        self._scale_results.append((req[0], res))
+                    self._scale_results.append((req[0], *res))
                     self._busy -= 1
                     self._cv.notify_all()
 
@@ -372,8 +417,12 @@ class GlobalBackend:
                 with self._lock:
                     for kf, epoch in incoming:
                         self._integrate(kf, epoch)
-                    for kf_id, scales in results:
-                        self._pending_scales[kf_id] = scales
+                    for kf_id, scales, inv_map in results:
+                        if scales is not None:
+                            self._pending_scales[kf_id] = scales
+                        if self.loop_detector is not None:
+                            self._depth_done[int(kf_id)] = inv_map
+                    self._run_loop_queries(final=False)
                     self._flush_scales()
                     self._solve()
             except Exception:  # never let the worker die silently; the pipeline keeps tracking

@@ -30,6 +30,13 @@ class LoopConfig(BaseModel):
     reprojection_threshold_px: float = Field(default=3.0, gt=0)
     hamming_ratio: float = Field(default=0.8, gt=0, le=1)
     min_keyframes_between_loops: int = Field(default=5, ge=0)
+    # all-corner verification (:mod:`metricslam.slam.loop.corners`); "landmarks" = VO landmarks only
+    verification: str = Field(default="corners", pattern="^(corners|landmarks)$")
+    n_corner_features: int = Field(default=1000, gt=0)  # full-resolution ORB corners per keyframe
+    essential_threshold_px: float = Field(default=1.0, gt=0)  # essential-matrix RANSAC threshold
+    corner_reprojection_threshold_px: float = Field(default=6.0, gt=0)  # Sim(3) RANSAC, two-way
+    min_depth_inliers: int = Field(default=15, gt=3)  # Sim(3) inliers among corners with depth
+    min_depth_inlier_ratio: float = Field(default=0.3, gt=0, le=1)
 
 
 class GraphConfig(BaseModel):

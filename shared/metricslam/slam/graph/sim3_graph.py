@@ -184,7 +184,7 @@ class GlobalPoseGraph:
                 joint = self._isam.jointMarginalCovariance(kl).fullMatrix()
                 J = np.hstack([-rel.inverse().AdjointMap(), np.eye(7)])
                 cov = cov + J @ joint @ J.T
-            except RuntimeError as exc:  # indeterminate system: fall back to the loop noise
+            except (RuntimeError, IndexError) as exc:  # indeterminate: fall back to the loop noise
                 log.debug("joint marginal failed: %s", exc)
         try:
             return float(innov @ np.linalg.solve(cov, innov))

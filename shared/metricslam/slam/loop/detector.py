@@ -4,7 +4,11 @@ Candidates are keyframes older than the ``skip_recent_keyframes`` most recent in
 ``keyframe_stride``-th keyframe is indexed) whose cosine
 score reaches ``min_score_ratio`` times the score of the query against its immediate predecessor
 (DBoW2's normalization: what "similar" means depends on the scene), best first, at most
-``n_candidates``; each is verified with :func:`metricslam.slam.loop.verification.verify`.
+``n_candidates``; each is verified with all ORB corners of both keyframes
+(:func:`metricslam.slam.loop.corners.verify_corners`; corner depth from the network's metric
+inverse-depth map in scale mode, from triangulation against the previous keyframe without it),
+falling back to the VO-landmark verification (:func:`metricslam.slam.loop.verification.verify`)
+when a keyframe has no corner depth.
 """
 
 from __future__ import annotations
@@ -16,7 +20,9 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.depth.model import to_gray_u8
+from metricslam.depth.sample import sample_map
 from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.verification import LandmarkFeatures, landmark_features, verify
 from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
 
@@ -45,6 +51,11 @@ class LoopDetector:
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
         self._features: dict[int, LandmarkFeatures] = {}
+        self._corners: dict[int, corner_mod.CornerFeatures] = {}
+        self._orb_corners = cv2.ORB_create(nfeatures=self.config.n_corner_features, nlevels=4,
+                                           fastThreshold=12)
+        self._prev_corners: tuple[np.ndarray, np.ndarray] | None = None  # last keyframe's (uv, desc)
+        self.n_corner_verified = 0
         self._order: list[int] = []
         self._last_loop_at = -10**9
         self._rng = np.random.default_rng(seed)
@@ -52,16 +63,35 @@ class LoopDetector:
         self.n_verified = 0
 
     def add_and_query(self, kf_id: int, image: np.ndarray, camera: PinholeCamera,
-                      landmarks_uv_px: np.ndarray, landmarks_inv_depth: np.ndarray) -> list[LoopCandidate]:
+                      landmarks_uv_px: np.ndarray, landmarks_inv_depth: np.ndarray,
+                      inv_depth_map: np.ndarray | None = None,
+                      T_prevkf_kf: np.ndarray | None = None) -> list[LoopCandidate]:
         """Add keyframe ``kf_id`` and return verified loops to older keyframes (maybe empty).
 
         Only every ``keyframe_stride``-th call does any work (consecutive keyframes see nearly
         the same place; a revisit spans many keyframes).
+
+        Args:
+            image / camera: the keyframe image (H, W) and its intrinsics.
+            landmarks_uv_px / landmarks_inv_depth: VO landmarks (M, 2) px and ξ (M,) in the
+                keyframe's own units.
+            inv_depth_map: the network's metric inverse depth (h, w) 1/m covering the image
+                (scale mode), or None (``--no-scale``: corners are triangulated instead).
+            T_prevkf_kf: (4, 4) VO pose relative to the previous keyframe (k's units), used to
+                triangulate corners when there is no depth map.
         """
         self._calls += 1
+        gray = to_gray_u8(image)
+        corner_mode = self.config.verification == "corners"
+        uv_c = desc_c = None
+        if corner_mode and (inv_depth_map is None or not (self._calls - 1) % self.config.keyframe_stride):
+            uv_c, desc_c = corner_mod.detect_corners(self._orb_corners, gray)
+        prev, self._prev_corners = self._prev_corners, ((uv_c, desc_c) if uv_c is not None else None)
         if (self._calls - 1) % self.config.keyframe_stride:
             return []
-        gray = to_gray_u8(image)
+        if corner_mode:
+            self._corners[kf_id] = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
+                                                         landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
         f = self.config.image_scale
         # retrieval: ORB detection costs per pixel, so it runs on a downscaled image; landmark
         # descriptors (verification) stay at full resolution with a single-level ORB (cheap)
@@ -104,10 +134,31 @@ class LoopDetector:
             if scores[i] < cfg.min_score_ratio * ref:
                 break
             old = int(ids[i])
-            res = verify(self._features[kf_id], self._features[old], camera, cfg, self._rng)
+            res = None
+            cn, co = self._corners.get(kf_id), self._corners.get(old)
+            if cn is not None and co is not None and min(cn.n_with_depth, co.n_with_depth) >= cfg.min_depth_inliers:
+                res = corner_mod.verify_corners(cn, co, camera, cfg, self._rng)
+                self.n_corner_verified += res is not None
+            else:
+                res = verify(self._features[kf_id], self._features[old], camera, cfg, self._rng)
             if res is not None:
                 out.append(LoopCandidate(old, kf_id, res.S_old_new, res.n_inliers, float(scores[i])))
                 self._last_loop_at = n - 1
                 self.n_verified += 1
                 break
         return out
+
+    def _corner_features(self, uv, desc, camera, shape_hw, lm_uv, lm_xi, inv_depth_map, T_prevkf_kf,
+                         prev) -> corner_mod.CornerFeatures:
+        """Corners with 3-D points in keyframe units: network depth, else triangulation."""
+        pts = np.full((len(uv), 3), np.nan)
+        if inv_depth_map is not None:
+            size = (int(shape_hw[1]), int(shape_hw[0]))
+            lm_uv = np.asarray(lm_uv, float).reshape(-1, 2)
+            m_per_unit = corner_mod.metres_per_unit(lm_xi, sample_map(inv_depth_map, lm_uv, size))
+            if m_per_unit is not None and len(uv):
+                pts = corner_mod.network_points(uv, sample_map(inv_depth_map, uv, size), m_per_unit, camera)
+        elif prev is not None and T_prevkf_kf is not None and len(uv):
+            pts = corner_mod.triangulated_points(uv, desc, prev[0], prev[1], T_prevkf_kf, camera,
+                                                 self.config.hamming_ratio)
+        return corner_mod.CornerFeatures(uv, desc, pts)

@@ -1,0 +1,169 @@
+"""All-corner loop verification: ORB corners of both keyframes with a depth per corner.
+
+A keyframe carries only ~30–80 VO landmarks and two visits of one place share few of them, so
+verification uses *all* ORB corners of both keyframes. Each corner gets a 3-D point in its
+keyframe's own VO units (what the keyframe's Sim(3) variable measures):
+
+* scale mode: the network's metric inverse-depth map sampled at the corner, converted to
+  keyframe units by the keyframe's metres-per-unit — the robust M-estimate of ``ξ_j / z_j`` over
+  its landmarks, i.e. the same measurement its scale factor carries;
+* ``--no-scale`` mode (no learned depth at all): triangulation of the corner against the
+  previous keyframe with the VO's own ``T_prevkf_kf`` (keyframe units).
+
+Verification: Hamming ratio-test matching, essential-matrix RANSAC on the matches
+(``cv2.findEssentialMat``: the geometric check that the two images see one rigid scene), then
+PnP-RANSAC (EPnP, refined by Levenberg-Marquardt) of the new camera against the old keyframe's
+3-D corners: rotation and translation (old units) rest on the new image's bearings, so only one
+side's depth noise enters (a 3-D–3-D Umeyama fit on network depth was off by 3–7° in rotation
+on the synthetic loop). The scale ``s_old_new`` is the median ratio of the inliers' distances
+from the new camera centre measured with the old and with the new keyframe's depths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.geometry import sim3
+from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.loop.verification import VerifiedLoop, _match
+
+#: metric inverse depths outside this range (1/m) are not used (sky, hood, too near).
+INV_DEPTH_RANGE_PER_M = (1.0 / 60.0, 1.0 / 1.5)
+
+
+@dataclass(frozen=True)
+class CornerFeatures:
+    """ORB corners of one keyframe: pixels (N, 2), descriptors (N, 32) uint8 and 3-D points
+    (N, 3) in the keyframe camera frame, keyframe VO units (NaN rows: no depth)."""
+
+    uv_px: np.ndarray
+    descriptors: np.ndarray
+    points: np.ndarray
+
+    @property
+    def n_with_depth(self) -> int:
+        return int(np.isfinite(self.points).all(axis=1).sum())
+
+
+def detect_corners(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ORB corners of a full-resolution gray image -> (uv_px (N, 2), descriptors (N, 32))."""
+    kps, desc = orb.detectAndCompute(gray, None)
+    if desc is None or not kps:
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+    return np.array([k.pt for k in kps], dtype=float), desc
+
+
+def metres_per_unit(landmarks_inv_depth: np.ndarray, net_inv_depth_at_landmarks: np.ndarray,
+                    min_landmarks: int = 5) -> float | None:
+    """Median of ``ξ_j / z_j`` (metres per keyframe unit) over valid landmarks, or None."""
+    xi = np.asarray(landmarks_inv_depth, float).reshape(-1)
+    z = np.asarray(net_inv_depth_at_landmarks, float).reshape(-1)
+    lo, hi = INV_DEPTH_RANGE_PER_M
+    ok = np.isfinite(xi) & np.isfinite(z) & (xi > 0) & (z >= lo) & (z <= hi)
+    if ok.sum() < min_landmarks:
+        return None
+    return float(np.exp(np.median(np.log(xi[ok] / z[ok]))))
+
+
+def network_points(uv_px: np.ndarray, net_inv_depth_per_m: np.ndarray, m_per_unit: float,
+                   camera: PinholeCamera) -> np.ndarray:
+    """3-D points (N, 3) in keyframe units from metric inverse depth (N,) at the corners."""
+    z = np.asarray(net_inv_depth_per_m, float).reshape(-1)
+    lo, hi = INV_DEPTH_RANGE_PER_M
+    ok = np.isfinite(z) & (z >= lo) & (z <= hi)
+    pts = np.full((len(z), 3), np.nan)
+    if ok.any():
+        pts[ok] = camera.unproject(uv_px[ok], (1.0 / z[ok]) / m_per_unit)
+    return pts
+
+
+def triangulated_points(uv_px: np.ndarray, desc: np.ndarray, prev_uv_px: np.ndarray,
+                        prev_desc: np.ndarray, T_prev_k: np.ndarray, camera: PinholeCamera,
+                        hamming_ratio: float = 0.8, max_reproj_px: float = 2.0,
+                        min_parallax_deg: float = 1.0) -> np.ndarray:
+    """3-D points (N, 3) of keyframe k's corners triangulated against the previous keyframe.
+
+    Args:
+        uv_px / desc: keyframe k's corners (N, 2) and descriptors.
+        prev_uv_px / prev_desc: the previous keyframe's corners and descriptors.
+        T_prev_k: (4, 4) pose of k in the previous keyframe (VO's ``T_prevkf_kf``; its
+            translation is in k's VO units, so the points are too).
+    Returns:
+        (N, 3) in k's camera frame, NaN where no match, bad reprojection or low parallax.
+    """
+    pts = np.full((len(uv_px), 3), np.nan)
+    pairs = _match(desc, prev_desc, hamming_ratio)
+    if len(pairs) < 8:
+        return pts
+    R, t = np.asarray(T_prev_k, float)[:3, :3], np.asarray(T_prev_k, float)[:3, 3]
+    if np.linalg.norm(t) <= 0:
+        return pts
+    K = camera.K
+    P_k = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    P_prev = K @ np.hstack([R, t[:, None]])
+    a, b = uv_px[pairs[:, 0]], prev_uv_px[pairs[:, 1]]
+    X = cv2.triangulatePoints(P_k, P_prev, a.T.astype(np.float64), b.T.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = (X[:3] / X[3]).T
+    X_prev = X @ R.T + t
+    c_prev_in_k = -R.T @ t
+    ray_k, ray_p = X, X - c_prev_in_k
+    cosang = np.sum(ray_k * ray_p, axis=1) / (np.linalg.norm(ray_k, axis=1) * np.linalg.norm(ray_p, axis=1))
+    with np.errstate(invalid="ignore"):
+        e_k = np.linalg.norm(camera.project(X) - a, axis=1)
+        e_p = np.linalg.norm(camera.project(X_prev) - b, axis=1)
+        ok = ((X[:, 2] > 0) & (X_prev[:, 2] > 0) & (e_k < max_reproj_px) & (e_p < max_reproj_px)
+              & (cosang < np.cos(np.radians(min_parallax_deg))))
+    ok &= np.isfinite(X).all(axis=1)
+    pts[pairs[ok, 0]] = X[ok]
+    return pts
+
+
+def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCamera,
+                   config: LoopConfig, rng: np.random.Generator) -> VerifiedLoop | None:
+    """Essential-matrix check, then RANSAC Sim(3) ``S_old_new`` (new's units -> old's), or None."""
+    pairs = _match(new.descriptors, old.descriptors, config.hamming_ratio)
+    if len(pairs) < max(config.min_matches, 8):
+        return None
+    uv_new, uv_old = new.uv_px[pairs[:, 0]], old.uv_px[pairs[:, 1]]
+    E, mask = cv2.findEssentialMat(uv_new, uv_old, camera.K, method=cv2.RANSAC, prob=0.999,
+                                   threshold=config.essential_threshold_px)
+    if E is None or mask is None:
+        return None
+    e_inl = mask.ravel().astype(bool)
+    if e_inl.sum() < config.min_inliers or e_inl.sum() < config.min_inlier_ratio * len(pairs):
+        return None
+    p_new, p_old = new.points[pairs[:, 0]], old.points[pairs[:, 1]]
+    idx = np.flatnonzero(e_inl & np.isfinite(p_old).all(axis=1))
+    if len(idx) < config.min_depth_inliers:
+        return None
+    # pose of the new camera from the old keyframe's 3-D corners (old units) and the new pixels:
+    # rotation and translation direction rest on bearings, only one side's depth noise enters
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        p_old[idx].astype(np.float64), uv_new[idx].astype(np.float64), camera.K, None,
+        iterationsCount=config.ransac_iterations, reprojectionError=config.corner_reprojection_threshold_px,
+        confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < config.min_depth_inliers:
+        return None
+    inl = idx[inl.ravel()]
+    if len(inl) < config.min_depth_inlier_ratio * len(idx):
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(p_old[inl].astype(np.float64), uv_new[inl].astype(np.float64),
+                                      camera.K, None, rvec, tvec)
+    R_new_old = cv2.Rodrigues(rvec)[0]
+    R_old_new = R_new_old.T
+    t_old_new = -R_old_new @ tvec.ravel()
+    # scale (old units per new unit): distances from the new camera centre on both sides
+    both = inl[np.isfinite(p_new[inl]).all(axis=1)]
+    if len(both) < config.min_depth_inliers // 2:
+        return None
+    d_old = np.linalg.norm(p_old[both] - t_old_new, axis=1)
+    d_new = np.linalg.norm(p_new[both], axis=1)
+    s_old_new = float(np.exp(np.median(np.log(d_old / d_new))))
+    if not np.isfinite(s_old_new) or s_old_new <= 0:
+        return None
+    return VerifiedLoop(sim3.from_rts(R_old_new, t_old_new, s_old_new), int(len(pairs)), int(len(inl)))
