@@ -29,6 +29,9 @@ class VOConfig(BaseModel):
     klt_window_px: int = Field(15, ge=5, description="LK window side (odd)")
     klt_max_iterations: int = Field(10, ge=1, description="LK iterations per pyramid level")
     klt_levels: int = Field(3, ge=0, le=6, description="LK pyramid levels above the base")
+    klt_back_levels: int = Field(
+        1, ge=0, le=6, description="pyramid levels of the backward (check) LK pass; it starts "
+        "at the original corner, so coarse levels only cost time")
     fb_max_error_px: float = Field(1.0, gt=0, description="forward-backward LK error threshold")
     ransac_threshold_px: float = Field(1.0, gt=0, description="essential-matrix RANSAC threshold")
     border_px: float = Field(8.0, ge=0, description="corners closer to the border are dropped")

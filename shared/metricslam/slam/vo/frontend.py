@@ -76,7 +76,8 @@ class KLTFrontend:
                                                   winSize=self._win, maxLevel=lv,
                                                   criteria=self._criteria)
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, self._prev_pyr, p1, p0.copy(),
-                                               winSize=self._win, maxLevel=lv,
+                                               winSize=self._win,
+                                               maxLevel=min(lv, self.config.klt_back_levels),
                                                criteria=self._criteria,
                                                flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         p1 = p1.reshape(-1, 2).astype(np.float64)

@@ -136,9 +136,11 @@ def linearize(problem: WindowProblem, huber_px: float) -> Linearization:
     JtWr = np.einsum("nki,nk->ni", WJt, r)
     JhWJr = np.einsum("nki,nk->ni", WJh, Jr)
     JtWJr = np.einsum("nki,nk->ni", WJt, Jr)
-    hh = np.einsum("nki,nkj->nij", WJh, Jh).reshape(-1, 36)
-    tt = np.einsum("nki,nkj->nij", WJt, Jt).reshape(-1, 36)
-    ht = np.einsum("nki,nkj->nij", WJh, Jt)
+    # batched (6x2)(2x6) products: matmul is ~5x faster than einsum here
+    WJhT, WJtT = np.transpose(WJh, (0, 2, 1)), np.transpose(WJt, (0, 2, 1))
+    hh = np.matmul(WJhT, Jh).reshape(-1, 36)
+    tt = np.matmul(WJtT, Jt).reshape(-1, 36)
+    ht = np.matmul(WJhT, Jt)
     th = np.transpose(ht, (0, 2, 1)).reshape(-1, 36)
     # sorted segment sums with a cached plan (much faster than np.add.at on (n, n, 6, 6))
     if "pp" not in P.plans:

@@ -30,15 +30,16 @@ def estimate_pose(T_world_cam: np.ndarray, p_world: np.ndarray, uv_px: np.ndarra
     rho = np.ones(n)
     for it in range(iterations):
         Tn = np.repeat(T[None], n, axis=0)
-        pr = project(eye, Tn, p_world, rho, uv_px, K)
+        pr = project(eye, Tn, p_world, rho, uv_px, K, host_jacobian=False)
         # wide robust kernel first (the prediction may be pixels off), then the nominal one
         k = huber_px * max(1.0, 8.0 / 2.0**it)
         w = huber_weights(pr.residual_px, k) * pr.valid
         if k == huber_px:  # once converged near the solution, ignore gross outliers entirely
             w = w * (np.linalg.norm(pr.residual_px, axis=1) < 3.0 * huber_px)
-        J = pr.J_target
-        H = np.einsum("nki,nkj->ij", J * w[:, None, None], J)
-        g = np.einsum("nki,nk->i", J * w[:, None, None], pr.residual_px)
+        J = pr.J_target.reshape(-1, 6)  # (2N, 6): one GEMM instead of a batched einsum
+        WJ = J * np.repeat(w, 2)[:, None]
+        H = WJ.T @ J
+        g = WJ.T @ pr.residual_px.reshape(-1)
         try:
             dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
         except np.linalg.LinAlgError:

@@ -38,12 +38,11 @@ class Projection:
 
 def skew(v: np.ndarray) -> np.ndarray:
     """Batched hat operator: (N, 3) -> (N, 3, 3)."""
-    z = np.zeros(v.shape[0])
-    return np.stack([
-        np.stack([z, -v[:, 2], v[:, 1]], axis=1),
-        np.stack([v[:, 2], z, -v[:, 0]], axis=1),
-        np.stack([-v[:, 1], v[:, 0], z], axis=1),
-    ], axis=1)
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
 
 
 def relative_poses(T_world_host: np.ndarray, T_world_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +57,7 @@ def relative_poses(T_world_host: np.ndarray, T_world_target: np.ndarray) -> tupl
 
 def project(T_world_host: np.ndarray, T_world_target: np.ndarray, bearing_h: np.ndarray,
             rho: np.ndarray, uv_obs_px: np.ndarray, K: np.ndarray,
-            with_jacobians: bool = True) -> Projection:
+            with_jacobians: bool = True, host_jacobian: bool = True) -> Projection:
     """Residuals (and Jacobians) of observations ``uv_obs_px`` (N, 2) of landmarks.
 
     Args:
@@ -67,6 +66,8 @@ def project(T_world_host: np.ndarray, T_world_target: np.ndarray, bearing_h: np.
         rho: (N,) inverse depths in the host frame.
         uv_obs_px: (N, 2) observed pixels in the target keyframe.
         K: (3, 3) intrinsics.
+        with_jacobians: False skips all Jacobians (zeros); ``host_jacobian=False`` skips only
+            ``J_host`` (zeros), for motion-only solves.
     """
     R_th, t_th = relative_poses(T_world_host, T_world_target)
     Rf = np.einsum("nij,nj->ni", R_th, bearing_h)
@@ -87,10 +88,13 @@ def project(T_world_host: np.ndarray, T_world_target: np.ndarray, bearing_h: np.
     J_pi[:, 1, 1] = fy / zs
     J_pi[:, 1, 2] = -fy * q[:, 1] / zs**2
     # dq/dξ_host = R_t_h [-[f]×, ρ I];  dq/dξ_target = [[q]×, -ρ I];  dq/dρ = t_t_h
-    J_qh = np.concatenate([-R_th @ skew(bearing_h), rho[:, None, None] * R_th], axis=2)
     J_qt = np.concatenate([skew(q), -rho[:, None, None] * np.eye(3)[None]], axis=2)
-    J_host = J_pi @ J_qh
     J_target = J_pi @ J_qt
+    if host_jacobian:
+        J_qh = np.concatenate([-R_th @ skew(bearing_h), rho[:, None, None] * R_th], axis=2)
+        J_host = J_pi @ J_qh
+    else:  # motion-only callers: the host (world) is fixed
+        J_host = np.zeros((n, 2, 6))
     J_rho = np.einsum("nij,nj->ni", J_pi, t_th)
     return Projection(r, J_host, J_target, J_rho, valid)
 
