@@ -95,23 +95,26 @@ class LandmarkMap:
         index = {k: i for i, k in enumerate(kf_ids)}
         lm_ids, host, bearing, rho = [], [], [], []
         obs_lm, obs_kf, obs_uv = [], [], []
-        for lm in self.landmarks.values():
-            if not lm.has_depth or lm.host_kf not in index:
+        for lm in self.landmarks.values():  # the hot loop of every solve: plain Python, no numpy
+            if not lm.has_depth:
                 continue
-            if only_hosts is not None and lm.host_kf not in only_hosts:
-                continue
-            targets = [(index[k], uv) for k, uv in lm.obs.items() if k in index]
-            if not targets:
+            h = index.get(lm.host_kf)
+            if h is None or (only_hosts is not None and lm.host_kf not in only_hosts):
                 continue
             j = len(lm_ids)
+            n_before = len(obs_kf)
+            for k, uv in lm.obs.items():
+                i = index.get(k)
+                if i is not None:
+                    obs_kf.append(i)
+                    obs_uv.append(uv)
+            if len(obs_kf) == n_before:
+                continue
+            obs_lm.extend([j] * (len(obs_kf) - n_before))
             lm_ids.append(lm.lm_id)
-            host.append(index[lm.host_kf])
+            host.append(h)
             bearing.append(lm.bearing)
             rho.append(lm.rho)
-            for i, uv in targets:
-                obs_lm.append(j)
-                obs_kf.append(i)
-                obs_uv.append(uv)
         problem = WindowProblem(
             T_world_kf=np.array(T_world_kf, dtype=float).reshape(-1, 4, 4),
             lm_host=np.array(host, dtype=np.int64), lm_bearing=np.array(bearing).reshape(-1, 3),
@@ -123,15 +126,25 @@ class LandmarkMap:
     def points_world(self, lm_ids: np.ndarray, T_world_by_kf: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """World points (K, 3) of depth-known landmarks among ``lm_ids``; returns ``(mask, points)``."""
         mask = np.zeros(len(lm_ids), dtype=bool)
-        pts = []
-        for k, lid in enumerate(lm_ids):
-            lm = self.landmarks.get(int(lid))
-            if lm is None or not lm.has_depth or lm.host_kf not in T_world_by_kf:
+        rows, hosts, bearing, rho = [], [], [], []
+        get = self.landmarks.get
+        for k, lid in enumerate(np.asarray(lm_ids).tolist()):
+            lm = get(lid)
+            if lm is None or not lm.has_depth:
                 continue
-            T = T_world_by_kf[lm.host_kf]
-            pts.append(T[:3, :3] @ (lm.bearing / lm.rho) + T[:3, 3])
-            mask[k] = True
-        return mask, np.array(pts).reshape(-1, 3)
+            T = T_world_by_kf.get(lm.host_kf)
+            if T is None:
+                continue
+            rows.append(k)
+            hosts.append(T)
+            bearing.append(lm.bearing)
+            rho.append(lm.rho)
+        if not rows:
+            return mask, np.zeros((0, 3))
+        mask[rows] = True
+        T_h = np.array(hosts)
+        p_host = np.array(bearing) / np.array(rho)[:, None]
+        return mask, np.matmul(T_h[:, :3, :3], p_host[:, :, None])[:, :, 0] + T_h[:, :3, 3]
 
     def predict_pixels(self, lm_ids: np.ndarray, T_world_by_kf: dict[int, np.ndarray],
                        T_world_cam: np.ndarray) -> np.ndarray:
