@@ -28,6 +28,25 @@ from pathlib import Path
 METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
 
 
+def end_errors(est_path: Path, gt_path: str) -> dict:
+    """End-of-sequence errors after Sim(3) alignment of all positions (metres).
+
+    ``end_err_m``: aligned position error of the last frame; ``gap_err_m``: error of the
+    first-to-last displacement (for a sequence that returns to its start, the loop gap).
+    """
+    import numpy as np
+
+    from metricslam.geometry.align import align_trajectory
+    from metricslam.trajectory.io import read_kitti_poses
+
+    est, gt = read_kitti_poses(est_path), read_kitti_poses(gt_path)
+    n = min(len(est), len(gt))
+    _, al = align_trajectory(est[:n], gt[:n], with_scale=True)
+    d_est, d_gt = al[n - 1, :3, 3] - al[0, :3, 3], gt[n - 1, :3, 3] - gt[0, :3, 3]
+    return {"end_err_m": float(np.linalg.norm(al[n - 1, :3, 3] - gt[n - 1, :3, 3])),
+            "gap_err_m": float(np.linalg.norm(d_est - d_gt))}
+
+
 def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, extra: list[str]) -> dict:
     tag = f"{name}_{'noscale' if no_scale else 'scale'}"
     est, stats, metrics = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json", workdir / f"{tag}_eval.json"
@@ -53,6 +72,7 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
         "name": tag, "command": " ".join(cmd[2:]), "wall_s": wall, "stats": s, "metrics": m,
         "fps_wall": s.get("fps") or (n / wall if n else None),  # run's own frames / s (with depth)
         "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
+        **end_errors(est, gt),
     }
 
 
@@ -85,8 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         lines = ["# Metric SLAM: learned scale vs --no-scale", "",
                  f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ",
                  f"Machine: {machine} (2 cores shared with other jobs while measured)", "",
-                 "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | fps | keyframes | scale factors | loops |",
-                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+                 "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | end err Sim(3) m | fps | keyframes | scale factors | loops verified / accepted | accepted loops (frames) |",
+                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in rows:
             if "error" in r:
                 lines.append(f"| {r['name']} | failed: {r['error'][-200:]!r} |")
@@ -98,8 +118,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {r['name']} | {m.get('n_frames')} | {m.get('path_length_m', float('nan')):.0f} | "
                 f"{m.get('scale_ratio', float('nan')):.3f} | {m.get('scale_error_pct', float('nan')):.1f} | "
                 f"{m.get('ate_rmse_m', float('nan')):.2f} | {r['ate_pct_of_path'] or float('nan'):.2f} | "
-                f"{m.get('t_rel_pct', float('nan')):.2f} | {r['fps_wall'] or float('nan'):.1f} | "
-                f"{back.get('keyframes', '?')} | {back.get('scale_factors', '?')} | {len(loops)} {loops[:6]} |")
+                f"{m.get('t_rel_pct', float('nan')):.2f} | {r['end_err_m']:.2f} | {r['fps_wall'] or float('nan'):.1f} | "
+                f"{back.get('keyframes', '?')} | {back.get('scale_factors', '?')} | "
+                f"{back.get('loops_verified', '?')} / {len(loops)} | {loops[:8]}{' …' if len(loops) > 8 else ''} |")
         out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     return 0
 

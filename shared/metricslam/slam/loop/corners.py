@@ -127,11 +127,12 @@ def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCame
                    config: LoopConfig, rng: np.random.Generator) -> VerifiedLoop | None:
     """Essential-matrix check, then RANSAC Sim(3) ``S_old_new`` (new's units -> old's), or None."""
     pairs = _match(new.descriptors, old.descriptors, config.hamming_ratio)
-    if len(pairs) < max(config.min_matches, 8):
-        return None
+    if len(pairs) < max(config.min_matches, 2 * config.min_depth_inliers):
+        return None  # a true revisit matches hundreds of corners; wrong places a few dozen
     uv_new, uv_old = new.uv_px[pairs[:, 0]], old.uv_px[pairs[:, 1]]
     E, mask = cv2.findEssentialMat(uv_new, uv_old, camera.K, method=cv2.RANSAC, prob=0.999,
-                                   threshold=config.essential_threshold_px)
+                                   threshold=config.essential_threshold_px,
+                                   maxIters=config.ransac_iterations)
     if E is None or mask is None:
         return None
     e_inl = mask.ravel().astype(bool)
