@@ -139,6 +139,9 @@ def plot_error_vs_length(seqs: list[dict], out: Path) -> Path:
             ax_r.plot(L, r, styles[k % len(styles)], color=COLORS[v], ms=4, lw=1, label=lab)
     for ax, lab in ((ax_t, "translation error (%)"), (ax_r, "rotation error (deg / 100 m)")):
         ax.set_xscale("log")
+        ticks = [10, 20, 50, 100, 200, 400, 800]
+        ax.set_xticks(ticks, labels=[str(t) for t in ticks])
+        ax.minorticks_off()
         ax.set_xlabel("segment length (m)")
         ax.set_ylabel(lab)
         ax.grid(alpha=0.3, which="both")
