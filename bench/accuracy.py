@@ -64,6 +64,17 @@ def machine_description() -> str:
             "(machine shared with other jobs)")
 
 
+def code_description() -> str:
+    """Which ``metricslam`` the child runs use (PYTHONPATH may point at a frozen snapshot) and
+    the checkout's commit; set ``METRICSLAM_CODE_NOTE`` to say where a snapshot came from."""
+    where = subprocess.run([sys.executable, "-c", "import metricslam; print(metricslam.__file__)"],
+                           capture_output=True, text=True).stdout.strip()
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    note = os.environ.get("METRICSLAM_CODE_NOTE", "")
+    return f"metricslam imported from {where}; checkout HEAD {head or '?'}" + (f"; {note}" if note else "")
+
+
 def _run(cmd: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True)
 
@@ -126,7 +137,7 @@ def write_markdown(report: dict, out_md: Path) -> None:
     head = ("| t_rel % | r_rel °/100 m | ATE SE(3) m | ATE Sim(3) m | scale ratio | scale err % |")
     lines = ["# Table 1 — accuracy: metricslam vs --no-scale (same run)", "",
              f"Command: `{report['command']}`  ", f"Machine: {report['machine']}  ",
-             f"Date: {report['date_utc']}", "",
+             f"Code: {report['code']}  ", f"Date: {report['date_utc']}", "",
              "Variants: " + "; ".join(f"**{k}** = {v}" for k, v in VARIANT_LABEL.items()) + ".", "",
              "## Per sequence", "",
              "| sequence | depth net trained on it? | frames | GT path m | segment lengths m | variant "
@@ -188,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
     report = {"command": ".venv/bin/python " + " ".join(sys.argv), "machine": machine_description(),
-              "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sequences": [],
+              "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sequences": [],
               "notes": list(args.note)}
     for spec in args.seq:
         name, rest = spec.split("=", 1)

@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from accuracy import METRICSLAM, machine_description
+from accuracy import METRICSLAM, code_description, machine_description
 
 MODES = {"metric": [], "no-scale": ["--no-scale"], "vo-only": ["--vo-only"]}
 #: (key in ms_per_frame / ms_per_call, label)
@@ -81,7 +81,7 @@ def write_markdown(report: dict, out_md: Path) -> None:
     sep = "| --- " * (len(modes) + 1) + "|"
     lines = ["# Table 3 — speed of `metricslam run`", "",
              f"Command: `{report['command']}`  ", f"Machine: {report['machine']}  ",
-             f"Date: {report['date_utc']}  ", f"Sequence: `{report['seq']}`", "",
+             f"Code: {report['code']}  ", f"Date: {report['date_utc']}  ", f"Sequence: `{report['seq']}`", "",
              "## Whole run", "", "| | " + hdr[2:], sep]
     n = [r["stats"].get("frames") for r in rows]
     lines.append("| frames | " + " | ".join(str(x) for x in n) + " |")
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     workdir = Path(tempfile.mkdtemp(prefix="metricslam_speed_"))
     report = {"command": ".venv/bin/python " + " ".join(sys.argv), "seq": args.seq,
-              "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "runs": [],
+              "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "runs": [],
               "notes": list(args.note)}
     load_before = os.getloadavg()
     for mode in args.modes:
