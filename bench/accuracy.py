@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import platform
 import subprocess
 import sys
@@ -136,7 +137,7 @@ def metric_cells(m: dict) -> str:
 def write_markdown(report: dict, out_md: Path) -> None:
     head = ("| t_rel % | r_rel °/100 m | ATE SE(3) m | ATE Sim(3) m | scale ratio | scale err % |")
     lines = ["# Table 1 — accuracy: metricslam vs --no-scale (same run)", "",
-             f"Command: `{report['command']}`  ", f"Machine: {report['machine']}  ",
+             f"Command: ``{report['command']}``  ", f"Machine: {report['machine']}  ",
              f"Code: {report['code']}  ", f"Date: {report['date_utc']}", "",
              "Variants: " + "; ".join(f"**{k}** = {v}" for k, v in VARIANT_LABEL.items()) + ".", "",
              "## Per sequence", "",
@@ -198,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(args.keep)
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
-    report = {"command": ".venv/bin/python " + " ".join(sys.argv), "machine": machine_description(),
+    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "machine": machine_description(),
               "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sequences": [],
               "notes": list(args.note)}
     for spec in args.seq:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -80,7 +81,7 @@ def write_markdown(report: dict, out_md: Path) -> None:
     hdr = "| " + " | ".join(modes) + " |"
     sep = "| --- " * (len(modes) + 1) + "|"
     lines = ["# Table 3 — speed of `metricslam run`", "",
-             f"Command: `{report['command']}`  ", f"Machine: {report['machine']}  ",
+             f"Command: ``{report['command']}``  ", f"Machine: {report['machine']}  ",
              f"Code: {report['code']}  ", f"Date: {report['date_utc']}  ", f"Sequence: `{report['seq']}`", "",
              "## Whole run", "", "| | " + hdr[2:], sep]
     n = [r["stats"].get("frames") for r in rows]
@@ -122,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
     workdir = Path(tempfile.mkdtemp(prefix="metricslam_speed_"))
-    report = {"command": ".venv/bin/python " + " ".join(sys.argv), "seq": args.seq,
+    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "seq": args.seq,
               "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "runs": [],
               "notes": list(args.note)}
     load_before = os.getloadavg()
