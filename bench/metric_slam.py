@@ -47,11 +47,44 @@ def end_errors(est_path: Path, gt_path: str) -> dict:
             "gap_err_m": float(np.linalg.norm(d_est - d_gt))}
 
 
-def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, extra: list[str]) -> dict:
-    tag = f"{name}_{'noscale' if no_scale else 'scale'}"
+def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, preset: str | None) -> None:
+    """``metricslam run`` with loop closure disabled (ablation; same pipeline otherwise)."""
+    import numpy as np
+
+    from metricslam.datasets import open_sequence
+    from metricslam.slam.backend_factory import make_backend
+    from metricslam.slam.graph.config import GraphConfig, LoopConfig
+    from metricslam.slam.pipeline import SlamPipeline
+    from metricslam.slam.vo.config import VOConfig
+    from metricslam.trajectory.io import write_kitti_poses
+
+    seq = open_sequence(seq_dir)
+    backend = make_backend(seq.camera, use_scale=not no_scale,
+                           config=GraphConfig(loop=LoopConfig(enabled=False)))
+    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset or "kitti"), backend=backend)
+    t0 = time.perf_counter()
+    try:
+        for i in range(len(seq)):
+            pipe.process(seq[i])
+    finally:
+        pipe.close()
+    wall = time.perf_counter() - t0
+    write_kitti_poses(out, np.array([e.T_world_cam for e in pipe.trajectory()]))
+    stats = pipe.stats()
+    stats.update({"wall_s": wall, "fps": len(seq) / wall})
+    Path(stats_json).write_text(json.dumps(stats, indent=2, default=float) + "\n")
+
+
+def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, extra: list[str],
+            loops: bool = True) -> dict:
+    tag = f"{name}_{'noscale' if no_scale else 'scale'}{'' if loops else '_noloops'}"
     est, stats, metrics = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json", workdir / f"{tag}_eval.json"
     cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats)] + extra
-    if no_scale:
+    if not loops:  # same pipeline through this script's in-process driver
+        preset = extra[extra.index("--preset") + 1] if "--preset" in extra else None
+        cmd = [sys.executable, __file__, "--_noloops", seq_dir, str(est), str(stats), str(no_scale),
+               preset or "kitti"]
+    if no_scale and loops:
         cmd.append("--no-scale")
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -69,7 +102,7 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
     n = m.get("n_frames") or s.get("frames")
     path = m.get("path_length_m") or float("nan")
     return {
-        "name": tag, "command": " ".join(cmd[2:]), "wall_s": wall, "stats": s, "metrics": m,
+        "name": tag, "command": " ".join(cmd[2:] if loops else cmd[1:]), "wall_s": wall, "stats": s, "metrics": m,
         "fps_wall": s.get("fps") or (n / wall if n else None),  # run's own frames / s (with depth)
         "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
         **end_errors(est, gt),
@@ -77,11 +110,18 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--_noloops":  # internal: the ablation driver in its own process
+        seq_dir, out, stats, no_scale, preset = argv[1:6]
+        run_without_loops(seq_dir, out, stats, no_scale == "True", preset)
+        return 0
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, metavar="NAME=SEQ_DIR:GT.txt")
     p.add_argument("--out", help="write OUT.md and OUT.json")
     p.add_argument("--keep", help="keep estimates in this folder")
     p.add_argument("--extra", default="", help="extra arguments for metricslam run")
+    p.add_argument("--ablate-loops", action="store_true",
+                   help="also run each variant with loop closure disabled (rows *_noloops)")
     args = p.parse_args(argv)
     workdir = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="metric_slam_"))
     workdir.mkdir(parents=True, exist_ok=True)
@@ -93,9 +133,10 @@ def main(argv: list[str] | None = None) -> int:
             extra = args.extra.split()
             if name.startswith("synth") and "--preset" not in extra:
                 extra += ["--preset", "synth"]
-            r = run_one(name, seq_dir, gt, no_scale, workdir, extra)
-            print(json.dumps({k: v for k, v in r.items() if k != "stats"}, default=str)[:2000], flush=True)
-            rows.append(r)
+            for loops in ((True, False) if args.ablate_loops else (True,)):
+                r = run_one(name, seq_dir, gt, no_scale, workdir, extra, loops)
+                print(json.dumps({k: v for k, v in r.items() if k != "stats"}, default=str)[:2000], flush=True)
+                rows.append(r)
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,10 @@ Threads and queues (``GraphConfig.inline=False``):
 * a depth worker asks the :class:`~metricslam.slam.depth_source.DepthSource` for metric inverse
   depth and turns it into per-landmark scale measurements ``ξ_j / z_j`` (eq. 12);
 * a graph worker inserts keyframes with their odometry (see :mod:`.odometry` for the units
-  bookkeeping across corrections), runs loop detection, adds scale factors and solves (ISAM2).
+  bookkeeping across corrections), runs loop detection (in scale mode once the keyframe's depth
+  map has arrived — loop verification uses it for corner depth; a failed or dropped request lets
+  the query go without), adds scale factors and solves (ISAM2); verified loops are gated and
+  added after that solve, when the new keyframe is inside ISAM2, and solved again.
   After a solve it offers the warp ``S_new_vo`` via :meth:`take_correction`.
 
 With ``inline=True`` everything runs inside ``on_keyframe_marginalized`` (deterministic).
