@@ -214,9 +214,9 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         "",
         f"Command: `{command}`",
         "",
-        f"Machine: {machine_description()}. **Shared with other engineers' work while measured** "
-        f"(1-min load average {load_before[0]:.2f} before, {load_after[0]:.2f} after), so these are "
-        "pessimistic numbers; the client runs on the same 2 cores as the server.",
+        f"Machine: {machine_description()}. 1-min load average {load_before[0]:.2f} before the run "
+        f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
+        "and the numbers are pessimistic); the client runs on the same 2 cores as the server.",
         "",
         f"Input: {n_frames} real KITTI PNG frames ({shape[1]}x{shape[0]} gray), POST /v1/disparity, "
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
