@@ -26,7 +26,6 @@ import collections
 import logging
 import threading
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,6 +33,7 @@ from metricslam.errors import GraphError, MetricSlamError
 from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
 from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.records import KeyframeRecord, LoopRecord
 from metricslam.slam.graph.odometry import (
     VoFrameHistory,
     odometry_information,
@@ -46,27 +46,6 @@ from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
 from metricslam.slam.types import MarginalizedKeyframe
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class _KeyframeRecord:
-    kf_id: int
-    frame_index: int
-    segment_id: int
-    epoch: int
-    T_vo_kf: np.ndarray  # keyframe pose in the VO frame of its epoch (its own units)
-    step_length: float = 1.0  # odometry step into this keyframe, in its predecessor's units
-
-
-@dataclass(frozen=True)
-class LoopRecord:
-    """A loop accepted into the graph (ids and input frame indices of both keyframes)."""
-
-    kf_old: int
-    kf_new: int
-    frame_old: int
-    frame_new: int
-    n_inliers: int
 
 
 class GlobalBackend:
@@ -98,7 +77,7 @@ class GlobalBackend:
         self._loops_verified = 0
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
         self._pending_scales: dict[int, np.ndarray] = {}
-        self._records: dict[int, _KeyframeRecord] = {}
+        self._records: dict[int, KeyframeRecord] = {}
         self._last_of_segment: dict[int, int] = {}
         self._newest_kf: int | None = None
         self._corr_lock = threading.Lock()  # guards _pending_correction only (never held long)
@@ -291,7 +270,7 @@ class GlobalBackend:
                 self._stats["epoch_mismatches"] += 1
                 log.warning("keyframe %d: T_vo_kf matches no recent VO frame; using the newest",
                             kf.kf_id)
-        rec = _KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, T_vo_kf)
+        rec = KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, T_vo_kf)
         if prev_id is not None:
             guess = self.graph.estimate(prev_id) @ S_prev_k
             info = odometry_information(S_prev_k, kf.information, self.config)
