@@ -26,14 +26,13 @@ import argparse
 import json
 import os
 import shlex
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
+from machine import describe
 from metricslam.errors import AlignmentError
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
@@ -45,24 +44,6 @@ VARIANT_LABEL = {
     "noscale": "--no-scale, as run",
     "noscale_sim3": "--no-scale + Sim(3) oracle alignment",
 }
-
-
-def machine_description() -> str:
-    """One line: CPU model, cores, RAM, OS, Python, load average (the machine is shared)."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        mem_kb = int(Path("/proc/meminfo").read_text().split()[1])
-        mem = f"{mem_kb / 2**20:.0f} GiB RAM"
-    except (OSError, ValueError, IndexError):
-        mem = "RAM unknown"
-    load = "/".join(f"{x:.1f}" for x in os.getloadavg())
-    return (f"{cpu}, {os.cpu_count()} cores, {mem}, {platform.platform()}, Python "
-            f"{platform.python_version()}, numpy {np.__version__}; load average {load} "
-            "(machine shared with other jobs)")
 
 
 def code_description() -> str:
@@ -199,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(args.keep)
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
-    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "machine": machine_description(),
+    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "machine": describe(),
               "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sequences": [],
               "notes": list(args.note)}
     for spec in args.seq:

@@ -18,7 +18,6 @@ import argparse
 import http.client
 import json
 import os
-import platform
 import shlex
 import sys
 import threading
@@ -27,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
+from machine import describe
 from metricslam_depth.process import ServiceProcess
 
 FX_PX = 718.856
@@ -111,17 +110,6 @@ def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total:
     seconds = time.perf_counter() - t0
     return RunResult(clients, "npy" if binary else "json", per_client * clients, seconds, latencies, statuses,
                      cpu_seconds(server_pid) - server_cpu0, time.process_time() - client_cpu0)
-
-
-def machine_description() -> str:
-    cpu = "unknown CPU"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
-    mem_kib = int(Path("/proc/meminfo").read_text().split()[1])
-    return (f"{cpu}, {os.cpu_count()} cores, {mem_kib / 2**20:.0f} GiB RAM, {platform.system()} "
-            f"{platform.release()}, Python {platform.python_version()}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,7 +202,7 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         "",
         f"Command: `{command}`",
         "",
-        f"Machine: {machine_description()}. 1-min load average {load_before[0]:.2f} before the run "
+        f"Machine: {describe()}. 1-min load average {load_before[0]:.2f} before the run "
         f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
         "and the numbers are pessimistic); the client runs on the same 2 cores as the server.",
         "",

@@ -29,7 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from accuracy import METRICSLAM, code_description, machine_description
+from accuracy import METRICSLAM, code_description
+from machine import describe
 
 MODES = {"metric": [], "no-scale": ["--no-scale"], "vo-only": ["--vo-only"]}
 #: (key in ms_per_frame / ms_per_call, label)
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         r = run_mode(args.seq, mode, workdir, args.max_frames)
         print(mode, {k: v for k, v in r.items() if k != "stats"}, flush=True)
         report["runs"].append(r)
-    report["machine"] = machine_description()
+    report["machine"] = describe()
     report["notes"].append(
         "Load average (1/5/15 min) before: " + "/".join(f"{x:.1f}" for x in load_before)
         + "; after: see Machine. Wall-clock numbers depend on what else ran on the 2 shared "

@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
+from machine import describe
 from metricslam.datasets import detect_format, open_sequence
 from metricslam.evaluation import evaluate_poses
 from metricslam.slam.pipeline import SlamPipeline
@@ -73,22 +71,6 @@ def run_sequence(path: Path, preset: str | None, background: bool, max_frames: i
     }
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = float("nan")
-    return f"{cpu}, {os.cpu_count()} cores, load average {load:.1f} at start, Python {platform.python_version()}"
-
-
 def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> str:
     out = ["# Local VO accuracy and speed", "",
            f"Command: `{command}`", "", f"Machine: {host}", "",
@@ -131,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--note", action="append", default=[],
                     help="provenance line for the report, e.g. how a synthetic sequence was made")
     args = ap.parse_args(argv)
-    host = machine()
+    host = describe()
     rows = []
     modes = {"background": [True], "sync": [False], "both": [True, False]}[args.mode]
     for s, background in [(s, b) for s in args.seq for b in modes]:

@@ -1,0 +1,34 @@
+"""One-line description of the machine a benchmark ran on (every results file records it)."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+
+def describe() -> str:
+    """CPU model, cores, RAM, OS, Python, numpy and the 1/5/15-min load average now.
+
+    The load average matters: this 2-core machine is often shared with other jobs, and a load
+    well above 0 before a run means its wall-clock numbers are pessimistic.
+    """
+    cpu = platform.processor() or platform.machine()
+    mem = "RAM unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+        mem_kb = int(Path("/proc/meminfo").read_text().split()[1])
+        mem = f"{mem_kb / 2**20:.0f} GiB RAM"
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        load = "/".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        load = "unknown"
+    return (f"{cpu}, {os.cpu_count()} cores, {mem}, {platform.platform()}, Python "
+            f"{platform.python_version()}, numpy {np.__version__}; load average {load}")
