@@ -20,7 +20,6 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from metricslam.camera import PinholeCamera
@@ -33,20 +32,10 @@ from metricslam.slam.vo.frontend import KLTFrontend
 from metricslam.slam.vo.initializer import InitResult, try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
 from metricslam.slam.vo.motion_only import estimate_pose, relocalize_pnp
+from metricslam.slam.vo.frame_check import limit_blas_threads, usable_gray
 from metricslam.slam.vo.window import BAWorker, Keyframe, SlidingWindow
 
 log = logging.getLogger(__name__)
-
-
-def _limit_blas_threads(n: int) -> None:
-    """Cap OpenBLAS threads process-wide (the window's matrices are tiny; oversubscribed BLAS
-    threads on a busy machine made one Schur product ~10x slower)."""
-    try:
-        import threadpoolctl
-    except ImportError:  # optional: only a speed-up
-        log.debug("threadpoolctl not installed; BLAS thread count left alone")
-        return
-    threadpoolctl.threadpool_limits(n, user_api="blas")
 
 
 @dataclass(frozen=True)
@@ -102,7 +91,7 @@ class LocalVO:
         self._anchors: list[Anchor] = []
         self._C_pending = np.eye(4)
         if config.blas_threads is not None:
-            _limit_blas_threads(config.blas_threads)
+            limit_blas_threads(config.blas_threads)
         self._worker = BAWorker(self.window) if config.ba_in_background else None
         self.window.on_correction = self._follow_window
 
@@ -120,7 +109,7 @@ class LocalVO:
         """Track one frame; never raises (bad input -> INVALID_FRAME, failure -> LOST)."""
         self.counters["frames"] += 1
         try:
-            gray = self._to_gray(frame)
+            gray = usable_gray(frame.image, self.camera, self.config.min_texture_std)
             if gray is None:
                 self.counters["invalid_frames"] += 1
                 est = self._estimate(frame, TrackingState.INVALID_FRAME)
@@ -191,21 +180,6 @@ class LocalVO:
         return None if np.allclose(C, np.eye(4), atol=1e-15) else C
 
     # ------------------------------------------------------------------ frames
-    def _to_gray(self, frame: Frame) -> np.ndarray | None:
-        """The frame as (H, W) uint8 gray, or None when it is unusable (corrupt/blank)."""
-        img = frame.image
-        if not isinstance(img, np.ndarray) or img.size == 0:
-            return None
-        if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
-            img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-        if img.ndim != 2 or img.dtype != np.uint8:
-            return None
-        if img.shape != (self.camera.height_px, self.camera.width_px):
-            return None
-        if float(img[::4, ::4].std()) < self.config.min_texture_std:
-            return None
-        return img
-
     def _estimate(self, frame: Frame, state: TrackingState, is_kf: bool = False) -> PoseEstimate:
         return PoseEstimate(frame_index=frame.index, t_ns=int(frame.t_ns),
                             T_world_cam=self._T_world_last.copy(), state=state,
