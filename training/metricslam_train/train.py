@@ -35,16 +35,35 @@ def pick_device(name: str) -> torch.device:
 def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
     """Build missing caches; return their paths and a description of the training set."""
     paths, names = [], []
-    for folder in cfg.sequences:
-        seq = read_stereo_sequence(folder, cfg.frame_step)
-        tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}"
-        path = Path(cfg.cache_dir) / f"{tag}.npz"
-        if not path.is_file():
-            log.info("building cache %s from %s", path, folder)
-            build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width)
-        paths.append(path)
-        names.append(f"{seq.name} ({len(seq.left_paths)} pairs, {Path(folder).resolve()})")
+    for entry in cfg.sequences:
+        folders = expand_sequences(entry)
+        n_pairs = 0
+        for folder in folders:
+            seq = read_stereo_sequence(folder, cfg.frame_step)
+            tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}"
+            path = Path(cfg.cache_dir) / f"{tag}.npz"
+            if not path.is_file():
+                log.info("building cache %s from %s", path, folder)
+                build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width)
+            paths.append(path)
+            n_pairs += len(seq.left_paths)
+        label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
+        names.append(f"{label} ({n_pairs} pairs, {entry})")
     return paths, "; ".join(names)
+
+
+def expand_sequences(entry: str) -> list[Path]:
+    """One ``sequences`` entry -> folders: a path, or a glob (``runs/synth_train/w*``), sorted."""
+    if not any(c in entry for c in "*?["):
+        return [Path(entry)]
+    base = Path(entry)
+    anchor = Path(base.anchor) if base.is_absolute() else Path(".")
+    pattern = str(base.relative_to(anchor)) if base.is_absolute() else entry
+    folders = sorted(p for p in anchor.glob(pattern) if p.is_dir())
+    if not folders:
+        raise TrainingError(f"sequences entry {entry!r} matches no folder: generate them first "
+                            "(see the config's header)")
+    return folders
 
 
 def checkpoint_meta(cfg: TrainConfig, training_data: str) -> dict:

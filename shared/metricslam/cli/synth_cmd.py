@@ -35,6 +35,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="average N sub-frame renders per image (0 = off)")
     p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
                    help="gaussian noise std in gray levels (default 1.5)")
+    p.add_argument("--traffic", type=float, default=0.0, metavar="PER_100M",
+                   help="vehicles standing on the road beside the path per 100 m (default 0)")
+    p.add_argument("--bridges", type=float, default=0.0, metavar="PER_KM",
+                   help="overpasses across the path per km (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
@@ -49,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     photo = {"motion_blur_samples": args.motion_blur}
     if args.noise is not None:
         photo["noise_sigma"] = args.noise
-    config = SynthConfig(photometric=PhotometricConfig(**photo))
+    from metricslam.synth.world import WorldConfig
+
+    world = WorldConfig(traffic_per_100m=args.traffic, bridges_per_km=args.bridges)
+    config = SynthConfig(photometric=PhotometricConfig(**photo), world=world)
     generate_sequence(args.out_dir, args.frames, args.seed, trajectory=args.trajectory,
                       size=args.size, start=args.start, path=args.path, config=config,
                       progress=not args.no_progress)

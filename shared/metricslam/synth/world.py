@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from metricslam.synth import materials as mt
 from metricslam.synth.meshes import UP, Mesh, MeshBuilder
+from metricslam.synth.traffic import add_bridges, add_traffic
 
 _CELL_M = 2.0  # ground ribbon step along the path
 _REVISIT_M = 40.0  # path parts further apart than this (in arc length) are "other parts"
@@ -38,6 +39,10 @@ class WorldConfig(BaseModel):
     margin_after_m: float = Field(160.0, ge=0)
     building_probability: float = Field(0.8, ge=0, le=1)
     car_probability: float = Field(0.5, ge=0, le=1)
+    #: vehicles standing on the road beside the path per 100 m (0 = empty road; see traffic.py)
+    traffic_per_100m: float = Field(0.0, ge=0, le=50)
+    #: overpasses across the path per km (0 = none)
+    bridges_per_km: float = Field(0.0, ge=0, le=50)
 
 
 @dataclass(frozen=True)
@@ -314,6 +319,10 @@ def build_world(T_world_cam: np.ndarray, seed: int, cfg: WorldConfig | None = No
     _ribbon(mb, pts, tangent, w, sw, cfg)
     _terrain(mb, pts, cfg)
     _objects(mb, pts, tangent, w, sw, rng, cfg)
+    # own generator: worlds without traffic stay exactly what they were
+    rng_traffic = np.random.default_rng([seed, 5002])
+    add_traffic(mb, pts, tangent, w, cKDTree(pts[:, [0, 2]]), cfg.traffic_per_100m, rng_traffic)
+    add_bridges(mb, pts, tangent, w + sw, cfg.bridges_per_km, rng_traffic)
     az = float(rng.uniform(0, 2 * np.pi))
     el = float(rng.uniform(np.radians(30), np.radians(60)))
     sun = np.array([np.cos(el) * np.sin(az), -np.sin(el), np.cos(el) * np.cos(az)])
