@@ -6,7 +6,23 @@ Example::
     metricslam run SEQ --no-scale --out est.txt       # baseline: nothing learned anywhere
     metricslam run SEQ --vo-only --out est.txt        # local VO alone, no global graph
 
-Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame.
+Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame. ``--json`` writes
+the run statistics (:meth:`SlamPipeline.stats`: counters, ms per stage, back end) plus the scale
+estimate over time (:meth:`SlamPipeline.scale_history`, units in
+:mod:`metricslam.slam.scale_history`):
+
+* ``scale_history`` — one dict per marginalized keyframe: ``frame_index``, ``t_ns``;
+  ``scale_live``, the running product of the warp scales applied to the VO until then (world
+  units per unit of the VO's initial frame ``VO₀``: the live VO→metric factor); the keyframe's
+  final optimized Sim(3) scale ``scale_kf_optimized`` (of ``S_world_kf``: world units per
+  keyframe VO unit) and ``scale_optimized = scale_kf_optimized · scale_live`` (per ``VO₀``
+  unit); ``scale_factors`` (how many learned scale measurements ``ξ_j/z_j`` the keyframe got; 0
+  when its depth request was dropped or failed) and their median ``scale_measured_median``
+  (metres per keyframe VO unit); ``step_vo`` (VO distance from the previous keyframe, keyframe
+  VO units; for a ground-truth reference). World units are metres in metric mode, and the
+  first keyframe's VO units with ``--no-scale`` / ``--vo-only`` (the VO's arbitrary scale).
+* ``scale_corrections`` — one dict per applied warp: ``frame_index``, ``t_ns``, its scale ``s``
+  and ``scale_live`` after it.
 """
 
 from __future__ import annotations
@@ -56,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.datasets import detect_format, open_sequence
     from metricslam.errors import ConfigError
     from metricslam.slam.pipeline import SlamPipeline
+    from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
     from metricslam.slam.vo.config import VOConfig
     from metricslam.trajectory.io import write_kitti_poses
 
@@ -67,16 +84,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     backend = None
+    history = ScaleHistory()
     if not args.vo_only:
         try:
             from metricslam.slam.backend_factory import make_backend
+            from metricslam.slam.depth_source import OnnxDepthSource
         except ImportError as exc:  # pragma: no cover - only before the back end landed
             raise ConfigError("metric mode not available yet: use --vo-only") from exc
-        backend = make_backend(seq.camera, use_scale=not args.no_scale, model_path=args.model)
+        source = None if args.no_scale else RecordingDepthSource(OnnxDepthSource(args.model), history)
+        backend = make_backend(seq.camera, use_scale=not args.no_scale, depth_source=source,
+                               config=history.graph_config)
     vo_config = VOConfig.preset(preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              vo_config.model_dump())
-    pipeline = SlamPipeline(seq.camera, vo_config, backend=backend)
+    pipeline = SlamPipeline(seq.camera, vo_config, backend=backend, scale_history=history)
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",
@@ -88,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     traj = pipeline.trajectory()
     write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]))
     stats = pipeline.stats()
+    stats.update(pipeline.scale_history())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
                   "fps": n / wall_s if wall_s > 0 else None,
                   "mode": "vo-only" if args.vo_only else ("no-scale" if args.no_scale else "metric")})

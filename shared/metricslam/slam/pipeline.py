@@ -6,6 +6,8 @@ marginalized keyframes go to the back end; after every frame the back end's corr
 to a keyframe (``T_kf_cam``) so :meth:`SlamPipeline.trajectory` gives each frame its current best
 pose: ``S_world_kf`` from the back end for marginalized keyframes (rotation ``R_world_kf·R_kf_cam``,
 position ``S_world_kf · t_kf_cam``, ``docs/conventions.md``), else the VO's keyframe pose.
+The scale estimate over time (live warp scale, optimized per-keyframe scale) is recorded in a
+:class:`~metricslam.slam.scale_history.ScaleHistory` (:meth:`SlamPipeline.scale_history`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.geometry import sim3, so3
+from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.types import Backend, MarginalizedKeyframe, PoseEstimate
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.local_vo import LocalVO
@@ -35,10 +38,13 @@ class SlamPipeline:
         vo_config: local VO parameters.
         backend: the global back end (``metricslam.slam.backend_factory.make_backend``), or
             None for VO only (poses in the VO's arbitrary monocular scale).
+        scale_history: recorder of the scale estimate (a fresh one when None); pass the one
+            whose :class:`~metricslam.slam.scale_history.RecordingDepthSource` wraps the back
+            end's depth source to also record each keyframe's learned scale measurements.
     """
 
     def __init__(self, camera: PinholeCamera, vo_config: VOConfig | None = None,
-                 backend: Backend | None = None) -> None:
+                 backend: Backend | None = None, scale_history: ScaleHistory | None = None) -> None:
         self.camera = camera
         self.backend = backend
         self.vo = LocalVO(vo_config or VOConfig(), camera, consumer=self)
@@ -49,11 +55,13 @@ class SlamPipeline:
         self._marginalized: set[int] = set()
         self._timings_ms: dict[str, list[float]] = defaultdict(list)
         self._corrections = 0
+        self._scale_history = scale_history if scale_history is not None else ScaleHistory()
         self._closed = False
 
     # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
         self._marginalized.add(kf.frame_index)
+        self._scale_history.on_keyframe(kf)
         if self.backend is not None:
             t0 = time.perf_counter()
             self.backend.on_keyframe_marginalized(kf)
@@ -70,6 +78,7 @@ class SlamPipeline:
                 S_new_vo = self.backend.take_correction()
                 if S_new_vo is not None:
                     self._apply_correction(S_new_vo)
+                    self._scale_history.on_correction(frame.index, frame.t_ns, sim3.scale(S_new_vo))
                     est = self._rewarp(est, S_new_vo)
                 scale_ok = bool(self.backend.scale_established)
             except Exception:  # noqa: BLE001 -- a back-end failure must not stop tracking
@@ -123,6 +132,22 @@ class SlamPipeline:
             except Exception:  # noqa: BLE001
                 log.exception("back end stats failed")
         return out
+
+    def scale_history(self) -> dict:
+        """The scale estimate over time (JSON-ready; units in :mod:`metricslam.slam.scale_history`).
+
+        Returns:
+            ``{"scale_history": [...], "scale_corrections": [...]}``: one dict per marginalized
+            keyframe (``frame_index``, ``t_ns``, live warp scale ``scale_live`` when it was
+            marginalized, final optimized ``scale_kf_optimized`` / ``scale_optimized``, learned
+            ``scale_factors`` count and ``scale_measured_median`` ξ/z, VO ``step_vo``) and one
+            per applied warp (``frame_index``, ``t_ns``, ``s``, running product ``scale_live``).
+            Scales are world units per VO unit: metres in metric mode, the first keyframe's VO
+            units with ``--no-scale``/``--vo-only``.
+        """
+        kf_global = self.backend.optimized_keyframe_poses() if self.backend is not None else None
+        return {"scale_history": self._scale_history.keyframes(kf_global),
+                "scale_corrections": self._scale_history.corrections()}
 
     def close(self) -> None:
         """Marginalize the remaining window into the back end, finish it, stop workers."""
