@@ -45,6 +45,8 @@ class TrainConfig(BaseModel):
     cache_dir: str = "runs/depth_cache"
     run_dir: str = "runs/depth"
     frame_step: int = Field(1, ge=1)
+    #: rendered sequences (with ``depth_0/``) supervise with their exact disparity, not SGBM
+    exact_synthetic_disparity: bool = False
     train_baseline_m: float = Field(0.537, gt=0)
     input_height: int = Field(256, gt=0, multiple_of=64)
     input_width: int = Field(512, gt=0, multiple_of=64)

@@ -40,6 +40,8 @@ class StereoSequence:
     right_paths: tuple[Path, ...]
     fx_px: float
     baseline_m: float
+    #: ``depth_0/*.png`` of a synthetic sequence (uint16, metres x 256, 0 = none), else empty
+    depth_paths: tuple[Path, ...] = ()
 
 
 def _read_calib(path: Path) -> dict[str, np.ndarray]:
@@ -73,8 +75,10 @@ def read_stereo_sequence(folder: str | Path, frame_step: int = 1) -> StereoSeque
     if not lefts or not all(p.is_file() for p in rights):
         raise TrainingError(f"{root}: needs matching image_0/*.png and image_1/*.png")
     lefts, rights = lefts[::frame_step], rights[::frame_step]
+    depths = [root / "depth_0" / p.name for p in lefts]
+    depths = depths if all(p.is_file() for p in depths) else []
     name = root.name if not re.fullmatch(r"\d+", root.name) else f"kitti{root.name}"
-    return StereoSequence(name, tuple(lefts), tuple(rights), fx_px, baseline_m)
+    return StereoSequence(name, tuple(lefts), tuple(rights), fx_px, baseline_m, tuple(depths))
 
 
 def read_gray(path: Path) -> np.ndarray:
@@ -115,6 +119,31 @@ def block_matching_pair(left: np.ndarray, right: np.ndarray, num_disparities: in
     return np.where(ok_l, d_left, 0).astype(np.float32), np.where(ok_r, d_right, 0).astype(np.float32)
 
 
+def exact_disparity_pair(depth_left_m: np.ndarray, fx_px: float,
+                         baseline_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact disparities (px, float32, 0 = invalid) of a rendered rectified pair from its left
+    depth map (metres, 0 = sky/none).
+
+    The left map is ``fx·B/z``. The right map splats every left pixel to ``u − d`` keeping the
+    largest disparity (the nearest surface); right pixels no left pixel lands on are 0 (seen by
+    the right camera only), except one-pixel rounding gaps between two similar neighbours, which
+    take the smaller neighbour.
+    """
+    depth = np.asarray(depth_left_m, np.float32)
+    d_left = np.where(depth > 0, fx_px * baseline_m / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+    h, w = depth.shape
+    rows, cols = np.nonzero(d_left > 0)
+    u_r = np.rint(cols - d_left[rows, cols]).astype(int)
+    ok = (u_r >= 0) & (u_r < w)
+    d_right = np.zeros_like(d_left)
+    np.maximum.at(d_right, (rows[ok], u_r[ok]), d_left[rows[ok], cols[ok]])
+    lft = np.pad(d_right, ((0, 0), (1, 0)))[:, :-1]
+    rgt = np.pad(d_right, ((0, 0), (0, 1)))[:, 1:]
+    gap = (d_right == 0) & (lft > 0) & (rgt > 0) & (np.abs(lft - rgt) <= 1.0)
+    d_right[gap] = np.minimum(lft, rgt)[gap]
+    return d_left, d_right
+
+
 def _resize_sparse(d_frac: np.ndarray, height: int, width: int) -> np.ndarray:
     """Masked area-resize of a sparse map (0 = invalid): mean of the valid source pixels per cell."""
     valid = (d_frac > 0).astype(np.float32)
@@ -125,8 +154,14 @@ def _resize_sparse(d_frac: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m: float,
-                height: int = 256, width: int = 512, num_disparities: int = 128) -> Path:
-    """Write the compact training cache of one sequence (see module docstring)."""
+                height: int = 256, width: int = 512, num_disparities: int = 128,
+                exact_synthetic: bool = False) -> Path:
+    """Write the compact training cache of one sequence (see module docstring).
+
+    ``exact_synthetic``: a sequence with ``depth_paths`` (rendered) is supervised with its exact
+    disparity (:func:`exact_disparity_pair`) instead of SGBM — dense, also on untextured surfaces
+    (truck sides, walls) where block matching has nothing to match.
+    """
     from tqdm import tqdm
 
     out = Path(out_path)
@@ -141,7 +176,14 @@ def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m
         if full_l.shape != full_r.shape:
             raise TrainingError(f"{sequence.left_paths[i]} and its right image differ in size")
         w_full = full_l.shape[1]
-        d_l, d_r = block_matching_pair(full_l, full_r, num_disparities)
+        if exact_synthetic and sequence.depth_paths:
+            depth_m = cv2.imread(str(sequence.depth_paths[i]), cv2.IMREAD_UNCHANGED)
+            if depth_m is None or depth_m.shape != full_l.shape:
+                raise TrainingError(f"{sequence.depth_paths[i]}: missing or not the size of its image")
+            d_l, d_r = exact_disparity_pair(depth_m.astype(np.float32) / 256.0, sequence.fx_px,
+                                            sequence.baseline_m)
+        else:
+            d_l, d_r = block_matching_pair(full_l, full_r, num_disparities)
         left[i] = cv2.resize(full_l, (width, height), interpolation=cv2.INTER_AREA)
         right[i] = cv2.resize(full_r, (width, height), interpolation=cv2.INTER_AREA)
         bm_left[i] = _resize_sparse(d_l / w_full, height, width)

@@ -40,11 +40,13 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
         n_pairs = 0
         for folder in folders:
             seq = read_stereo_sequence(folder, cfg.frame_step)
-            tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}"
+            exact = cfg.exact_synthetic_disparity and bool(seq.depth_paths)
+            tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}{'_exact' if exact else ''}"
             path = Path(cfg.cache_dir) / f"{tag}.npz"
             if not path.is_file():
                 log.info("building cache %s from %s", path, folder)
-                build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width)
+                build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width,
+                            exact_synthetic=exact)
             paths.append(path)
             n_pairs += len(seq.left_paths)
         label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
