@@ -2,10 +2,15 @@
 
 * ``trajectories.png`` — top view per sequence: ground truth, metricslam as run (no alignment:
   both start at the identity), and ``--no-scale`` after a Sim(3) oracle alignment.
-* ``scale_over_time.png`` — the trajectory's scale along the path. The pipeline does not log a
-  per-keyframe scale, so it is *derived from trajectory vs ground truth*: for every frame ``i``,
-  ``|p_est[j] − p_est[i]| / |p_gt[j] − p_gt[i]|`` with ``j`` the first frame at least ``W`` metres
-  of ground-truth path later (chord ratio over a sliding window). 1.0 is metric.
+* ``scale_over_time.png`` — the system's own scale estimate over time, from the
+  ``scale_history`` / ``scale_corrections`` that ``metricslam run --json`` logs (read from the
+  stats files ``bench/accuracy.py --keep`` kept), for metricslam and ``--no-scale``: the live
+  estimate (running product of the warp scales applied to the VO), the final optimized Sim(3)
+  scale per keyframe, the median learned measurement ξ/z per keyframe, all in world units per
+  unit of the VO's initial frame; and, drawn apart as a reference the system never sees, the
+  true value from ground truth (GT path / VO path over a trailing window). With ``--no-scale``
+  the world unit is the VO's own, so its curves sit near 1 while the reference shows how far
+  from metric that is.
 * ``error_vs_length.png`` — translational (%) and rotational (°/100 m) error against segment
   length (the paper's Fig. 5), from ``metricslam eval``'s ``t_rel_by_length``.
 * ``depth_example.png`` — ``metricslam depth`` on a ``kitti_raw_lidar`` frame (never trained on),
@@ -37,6 +42,7 @@ from metricslam.trajectory.io import read_kitti_poses  # noqa: E402
 
 METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
 COLORS = {"gt": "k", "metric": "tab:blue", "noscale": "tab:gray", "noscale_sim3": "tab:orange"}
+FIGURES = ("trajectories", "scale", "error", "depth")
 LABELS = {"metric": "metricslam (learned scale, as run)", "noscale": "--no-scale, as run",
           "noscale_sim3": "--no-scale, Sim(3)-aligned to GT (oracle scale)"}
 
@@ -83,40 +89,122 @@ def plot_trajectories(seqs: list[dict], out: Path) -> Path:
     return out
 
 
-def chord_scale(T_gt: np.ndarray, T_est: np.ndarray, window_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Derived scale along the path: (distance along GT path m (K,), chord ratio est/gt (K,))."""
-    p_gt, p_est = T_gt[:, :3, 3], T_est[:, :3, 3]
-    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_gt, axis=0), axis=1))])
-    j = np.searchsorted(dist, dist + window_m, side="left")
-    ok = j < len(dist)
-    i, j = np.nonzero(ok)[0], j[ok]
-    chord_gt = np.linalg.norm(p_gt[j] - p_gt[i], axis=1)
-    chord_est = np.linalg.norm(p_est[j] - p_est[i], axis=1)
-    keep = chord_gt > 0.5 * window_m  # a window that turns back on itself says little about scale
-    return dist[i][keep], chord_est[keep] / chord_gt[keep]
+def _scale_history(run: dict) -> dict | None:
+    """The ``metricslam run --json`` statistics of one run (kept by ``bench/accuracy.py``), if
+    they hold the scale history."""
+    path = run.get("stats_json") or (str(Path(run["est"]).with_suffix("")) + "_stats.json"
+                                     if run.get("est") else None)
+    if "error" in run or not path or not Path(path).is_file():
+        return None
+    stats = json.loads(Path(path).read_text())
+    return stats if stats.get("scale_history") else None
 
 
-def plot_scale(seqs: list[dict], out: Path) -> Path:
-    fig, axes = plt.subplots(len(seqs), 1, figsize=(9, 2.3 * len(seqs)), squeeze=False)
-    for ax, seq in zip(axes[:, 0], seqs):
+def true_scale(history: list[dict], T_gt: np.ndarray, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth reference for the scale history (never used by the system).
+
+    For every keyframe ``i``: the ground-truth path over the VO path, both between consecutive
+    keyframes of one segment over the trailing ``window_m`` metres of ground truth, with the VO
+    steps converted to the VO's initial units (``step_vo / scale_live``) — i.e. the true metres
+    per ``VO₀`` unit there, comparable with ``scale_live`` and ``scale_optimized``.
+
+    Returns:
+        (keyframe positions in ``history`` (K,), true scale (K,)), keyframes whose window is full.
+    """
+    p_gt = T_gt[:, :3, 3]
+    steps: list[tuple[float, float]] = []  # (gt m, VO₀ units) within the current segment
+    idx, vals = [], []
+    for i, (prev, rec) in enumerate(zip([None, *history[:-1]], history)):
+        if prev is None or rec["step_vo"] is None or rec["segment_id"] != prev["segment_id"]:
+            steps = []
+            continue
+        steps.append((float(np.linalg.norm(p_gt[rec["frame_index"]] - p_gt[prev["frame_index"]])),
+                      rec["step_vo"] / rec["scale_live"]))
+        gt_m = vo0 = 0.0
+        for g, v in reversed(steps):
+            gt_m, vo0 = gt_m + g, vo0 + v
+            if gt_m >= window_m:
+                break
+        if gt_m >= window_m and vo0 > 0:
+            idx.append(i)
+            vals.append(gt_m / vo0)
+    return np.array(idx, dtype=int), np.array(vals)
+
+
+def _draw_scale(ax, stats: dict, T_gt: np.ndarray, window_m: float, t0_ns: int) -> str:
+    """One run's scale history on ``ax``; returns a one-line summary (optimized vs reference)."""
+    hist, corr = stats["scale_history"], stats.get("scale_corrections", [])
+    t_kf = np.array([(r["t_ns"] - t0_ns) * 1e-9 for r in hist])
+    if corr:  # live: 1 until the first warp, then the running product, as a step function
+        t_c = np.array([0.0] + [(c["t_ns"] - t0_ns) * 1e-9 for c in corr] + [t_kf.max()])
+        live = np.array([1.0] + [c["scale_live"] for c in corr] + [corr[-1]["scale_live"]])
+        ax.step(t_c, live, where="post", color="tab:blue", lw=1.3,
+                label="live: product of the warp scales applied (as it ran)")
+    meas = [(t, r["scale_measured_median"] * r["scale_live"]) for t, r in zip(t_kf, hist)
+            if r.get("scale_measured_median")]
+    if meas:
+        m = np.array(meas)
+        ax.plot(m[:, 0], m[:, 1], "x", color="tab:gray", ms=3, alpha=0.6,
+                label="per keyframe: median learned ξ/z (× live)")
+    opt = np.array([(t, r["scale_optimized"]) for t, r in zip(t_kf, hist)
+                    if r.get("scale_optimized") is not None])
+    if opt.size:
+        ax.plot(opt[:, 0], opt[:, 1], ".", color="tab:orange", ms=3.5,
+                label="per keyframe: final optimized Sim(3) scale (× live)")
+    idx, ref = true_scale(hist, T_gt, window_m)
+    summary = "no ground-truth window fits"
+    if idx.size:
+        ax.plot(t_kf[idx], ref, "--", color="k", lw=1.2,
+                label=f"ground truth, reference only: GT / VO path over {window_m:.0f} m")
+        opt_at = np.array([hist[i]["scale_optimized"] if hist[i]["scale_optimized"] is not None
+                           else np.nan for i in idx])
+        r = opt_at / ref
+        r = r[np.isfinite(r)]
+        if r.size:
+            p10, p50, p90 = np.percentile(r, [10, 50, 90])
+            summary = f"optimized / reference: median {p50:.2f} (10–90 %: {p10:.2f}–{p90:.2f})"
+    ax.grid(alpha=0.3)
+    return summary
+
+
+def plot_scale(seqs: list[dict], out: Path) -> Path | None:
+    """Rows: sequences; columns: metricslam, ``--no-scale``. The system's own scale history from
+    ``metricslam run --json``, with the ground-truth reference drawn separately."""
+    rows = [(seq, {m: _scale_history(seq["runs"].get(m, {})) for m in ("metric", "noscale")})
+            for seq in seqs]
+    rows = [(seq, h) for seq, h in rows if any(h.values())]
+    if not rows:
+        print("scale_over_time.png skipped: the runs' stats hold no scale_history "
+              "(re-run bench/accuracy.py with the current metricslam)")
+        return None
+    fig, axes = plt.subplots(len(rows), 2, figsize=(12, 1.0 + 2.6 * len(rows)), squeeze=False)
+    for (seq, hists), ax_row in zip(rows, axes):
         gt = read_kitti_poses(seq["gt"])
-        est = _estimates(seq)
         path_m = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)))
         window_m = 10.0 if path_m < 200 else 50.0
-        for v in ("metric", "noscale"):
-            if v in est:
-                d, s = chord_scale(gt, est[v], window_m)
-                ax.plot(d, s, "-", color=COLORS[v], lw=1.2, label=f"{LABELS[v]}")
-        ax.axhline(1.0, color="k", lw=0.8, ls="--")
-        ax.set_ylim(0, max(1.6, ax.get_ylim()[1] if np.isfinite(ax.get_ylim()[1]) else 1.6))
-        ax.set_ylabel("est / true distance")
-        ax.set_title(f"{_title(seq, gt)} — window {window_m:.0f} m", fontsize=9)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("distance along the ground-truth path (m)")
-    axes[0, 0].legend(fontsize=7, loc="upper right")
-    fig.suptitle("Scale along the path, DERIVED from trajectory vs ground truth\n(chord ratio "
-                 "over a sliding window; the pipeline does not log per-keyframe scale)", fontsize=9)
-    fig.tight_layout()
+        t0 = min(r["t_ns"] for h in hists.values() if h for r in h["scale_history"])
+        for ax, mode in zip(ax_row, ("metric", "noscale")):
+            if not hists[mode]:
+                ax.set_axis_off()
+                continue
+            summary = _draw_scale(ax, hists[mode], gt, window_m, t0)
+            what = ("metricslam (learned scale)" if mode == "metric" else
+                    "--no-scale (world unit = the first keyframe's VO unit)")
+            ax.set_title(f"{_title(seq, gt)} — {what}\n{summary}", fontsize=8)
+            ax.set_ylim(bottom=0)
+        ax_row[0].set_ylabel("world units per VO₀ unit\n(metres in metric mode)", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    handles: dict = {}
+    for ax in axes.ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    fig.suptitle("Scale estimate over time, as the system logged it (metricslam run --json → "
+                 "scale_history); VO₀ = the VO's initial, arbitrary unit.\nBlack dashed: ground "
+                 "truth for reference only — the system never sees it.", fontsize=9)
+    fig.tight_layout(rect=(0, 0.07 / len(rows) + 0.02, 1, 1))
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=2, fontsize=7,
+               frameon=False)
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
@@ -209,20 +297,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip", nargs="*", default=["kitti03"],
                    help="sequences left out of the figures (default: kitti03, 5 frames)")
     p.add_argument("--out", required=True, help="output folder for PNGs")
+    p.add_argument("--figures", nargs="+", choices=FIGURES, default=list(FIGURES),
+                   help="which figures to (re)draw (default: all; depth needs --lidar-dir)")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = json.loads(Path(args.accuracy).read_text())
     seqs = [s for s in report["sequences"] if s["name"] not in args.skip]
-    written = [plot_trajectories(seqs, out / "trajectories.png"),
-               plot_scale(seqs, out / "scale_over_time.png"),
-               plot_error_vs_length(seqs, out / "error_vs_length.png")]
-    if args.lidar_dir:
+    written = []
+    if "trajectories" in args.figures:
+        written.append(plot_trajectories(seqs, out / "trajectories.png"))
+    if "scale" in args.figures:
+        written.append(plot_scale(seqs, out / "scale_over_time.png"))
+    if "error" in args.figures:
+        written.append(plot_error_vs_length(seqs, out / "error_vs_length.png"))
+    if "depth" in args.figures and args.lidar_dir:
         png, cmd = plot_depth(Path(args.lidar_dir), args.lidar_frame, out / "depth_example.png")
         written.append(png)
         print(f"depth: {cmd}")
     for w in written:
-        print(f"{w} {w.stat().st_size / 1024:.0f} KB")
+        if w is not None:
+            print(f"{w} {w.stat().st_size / 1024:.0f} KB")
     return 0
 
 
