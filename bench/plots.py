@@ -155,14 +155,15 @@ def _draw_scale(ax, stats: dict, T_gt: np.ndarray, window_m: float, t0_ns: int) 
     summary = "no ground-truth window fits"
     if idx.size:
         ax.plot(t_kf[idx], ref, "--", color="k", lw=1.2,
-                label=f"ground truth, reference only: GT / VO path over {window_m:.0f} m")
+                label="ground truth, reference only: GT path / VO path over a trailing window")
         opt_at = np.array([hist[i]["scale_optimized"] if hist[i]["scale_optimized"] is not None
                            else np.nan for i in idx])
         r = opt_at / ref
         r = r[np.isfinite(r)]
         if r.size:
             p10, p50, p90 = np.percentile(r, [10, 50, 90])
-            summary = f"optimized / reference: median {p50:.2f} (10–90 %: {p10:.2f}–{p90:.2f})"
+            summary = (f"optimized / reference ({window_m:.0f} m window): median {p50:.2f} "
+                       f"(10–90 %: {p10:.2f}–{p90:.2f})")
     ax.grid(alpha=0.3)
     return summary
 
@@ -177,7 +178,8 @@ def plot_scale(seqs: list[dict], out: Path) -> Path | None:
         print("scale_over_time.png skipped: the runs' stats hold no scale_history "
               "(re-run bench/accuracy.py with the current metricslam)")
         return None
-    fig, axes = plt.subplots(len(rows), 2, figsize=(12, 1.0 + 2.6 * len(rows)), squeeze=False)
+    height_in = 1.5 + 2.6 * len(rows)
+    fig, axes = plt.subplots(len(rows), 2, figsize=(12, height_in), squeeze=False)
     for (seq, hists), ax_row in zip(rows, axes):
         gt = read_kitti_poses(seq["gt"])
         path_m = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)))
@@ -202,7 +204,7 @@ def plot_scale(seqs: list[dict], out: Path) -> Path | None:
     fig.suptitle("Scale estimate over time, as the system logged it (metricslam run --json → "
                  "scale_history); VO₀ = the VO's initial, arbitrary unit.\nBlack dashed: ground "
                  "truth for reference only — the system never sees it.", fontsize=9)
-    fig.tight_layout(rect=(0, 0.07 / len(rows) + 0.02, 1, 1))
+    fig.tight_layout(rect=(0, 0.55 / height_in, 1, 1))
     fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=2, fontsize=7,
                frameon=False)
     fig.savefig(out, dpi=90)
