@@ -164,9 +164,9 @@ def write_markdown(report: dict, out_md: Path) -> None:
              f"Code: {report['code']}  ", f"Date: {report['date_utc']}", "",
              "Variants: " + "; ".join(f"**{k}** = {v}" for k, v in VARIANT_LABEL.items()) + ".", ""]
     if n_rep > 1:
-        lines += [f"Every sequence and mode ran **{n_rep} times**; cells are mean ± sd (sample "
-                  "standard deviation over the runs; a count in brackets when the metric was "
-                  "undefined in some runs). Every run's numbers are in the JSON (`repeats`).", ""]
+        lines += [(f"Every sequence and mode ran **{n_rep} times**; cells are mean ± sd (sample "
+                   "standard deviation over the runs; a count in brackets when the metric was "
+                   "undefined in some runs). Every run's numbers are in the JSON (`repeats`)."), ""]
     lines += ["## Per sequence", "",
               "| sequence | depth net trained on it? | frames | GT path m | segment lengths m | variant "
               + head, "| --- | --- | --- | --- | --- | --- " + "| --- " * 6 + "|"]

@@ -11,12 +11,12 @@ which the ``--no-scale`` run must *not* claim to know (its scale stays the VO's 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
 import numpy as np
 import pytest
-
 from metricslam.camera import PinholeCamera
 from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
 from metricslam.slam.types import MarginalizedKeyframe
@@ -40,7 +40,7 @@ def _true_m_per_vo0(history: list[dict], gt_path) -> float:
 
     p_gt = read_kitti_poses(gt_path)[:, :3, 3]
     gt_m, vo0 = 0.0, 0.0
-    for prev, rec in zip(history, history[1:]):
+    for prev, rec in itertools.pairwise(history):
         if rec["step_vo"] is None or rec["segment_id"] != prev["segment_id"]:
             continue
         gt_m += float(np.linalg.norm(p_gt[rec["frame_index"]] - p_gt[prev["frame_index"]]))

@@ -163,6 +163,6 @@ class RecordingDepthSource:
         inv_map = self.inner.inv_depth_map(image, camera)
         try:
             self.history.on_depth(image, inv_map)
-        except Exception:  # noqa: BLE001 -- recording must never cost a keyframe its scale
+        except Exception:  # recording must never cost a keyframe its scale
             log.exception("scale history: recording a depth answer failed")
         return inv_map
