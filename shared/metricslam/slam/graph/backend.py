@@ -325,11 +325,16 @@ class GlobalBackend:
             self._depth_done.clear()
 
     def _add_loop(self, cand) -> None:
-        step = self._records[cand.kf_old].step_length
-        t_len = float(np.linalg.norm(cand.S_old_new[:3, 3]))
-        sig_t = max(self.config.loop_sigma_trans_rel * max(t_len, step), self.config.odom_sigma_trans_min)
-        sig = np.array([self.config.loop_sigma_rot_rad] * 3 + [sig_t] * 3
-                       + [self.config.loop_sigma_log_scale])
+        sig = getattr(cand, "sigmas", None)
+        if sig is not None:  # measured from geometry with its own covariance (floors only)
+            sig = np.maximum(np.asarray(sig, dtype=float), [1e-4] * 3 + [self.config.odom_sigma_trans_min] * 3
+                             + [0.005])
+        else:
+            step = self._records[cand.kf_old].step_length
+            t_len = float(np.linalg.norm(cand.S_old_new[:3, 3]))
+            sig_t = max(self.config.loop_sigma_trans_rel * max(t_len, step), self.config.odom_sigma_trans_min)
+            sig = np.array([self.config.loop_sigma_rot_rad] * 3 + [sig_t] * 3
+                           + [self.config.loop_sigma_log_scale])
         decision = self.graph.add_loop(cand.kf_old, cand.kf_new, cand.S_old_new, sig)
         log.info("loop %d -> %d: %s (d2=%.1f, %d inliers)", cand.kf_old, cand.kf_new, decision.reason,
                  decision.mahalanobis_sq, cand.n_inliers)

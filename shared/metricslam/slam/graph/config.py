@@ -37,6 +37,14 @@ class LoopConfig(BaseModel):
     corner_reprojection_threshold_px: float = Field(default=6.0, gt=0)  # Sim(3) RANSAC, two-way
     min_depth_inliers: int = Field(default=15, gt=3)  # Sim(3) inliers among corners with depth
     min_depth_inlier_ratio: float = Field(default=0.3, gt=0, le=1)
+    # what measures a verified loop's translation and scale: "geometric" (corners triangulated
+    # against the previous keyframe, :mod:`metricslam.slam.loop.geometric_sim3`; network depth
+    # only verifies) or "network" (the verification's own points: network depth in scale mode)
+    measurement: str = Field(default="geometric", pattern="^(geometric|network)$")
+    rotation_sigma_rad: float = Field(default=0.01, gt=0)  # verified rotation (PnP 0.03-0.7 deg off)
+    geometric_reprojection_px: float = Field(default=3.0, gt=0)
+    min_geometric_points: int = Field(default=6, ge=3)  # old-side triangulated corners (translation)
+    min_geometric_scale_points: int = Field(default=5, ge=2)  # both-sided (scale)
 
 
 class GraphConfig(BaseModel):

@@ -29,6 +29,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.loop.geometric_sim3 import measure_loop
 from metricslam.slam.loop.verification import VerifiedLoop, _match
 
 #: metric inverse depths outside this range (1/m) are not used (sky, hood, too near).
@@ -38,11 +39,18 @@ INV_DEPTH_RANGE_PER_M = (1.0 / 60.0, 1.0 / 1.5)
 @dataclass(frozen=True)
 class CornerFeatures:
     """ORB corners of one keyframe: pixels (N, 2), descriptors (N, 32) uint8 and 3-D points
-    (N, 3) in the keyframe camera frame, keyframe VO units (NaN rows: no depth)."""
+    (N, 3) in the keyframe camera frame, keyframe VO units (NaN rows: no depth). ``points``
+    verify a loop (network depth in scale mode); ``points_geo`` (triangulated) measure it."""
 
     uv_px: np.ndarray
     descriptors: np.ndarray
     points: np.ndarray
+    points_geo: np.ndarray | None = None  # (N, 3) triangulated, keyframe VO units (NaN: none)
+
+    @property
+    def geometric_points(self) -> np.ndarray:
+        """Triangulated points (N, 3) for the loop measurement (``points`` when they are)."""
+        return self.points if self.points_geo is None else self.points_geo
 
     @property
     def n_with_depth(self) -> int:
@@ -158,6 +166,8 @@ def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCame
     R_new_old = cv2.Rodrigues(rvec)[0]
     R_old_new = R_new_old.T
     t_old_new = -R_old_new @ tvec.ravel()
+    if config.measurement == "geometric":
+        return _geometric(new, old, pairs, inl, np.flatnonzero(e_inl), R_old_new, t_old_new, camera, config)
     # scale (old units per new unit): distances from the new camera centre on both sides
     both = inl[np.isfinite(p_new[inl]).all(axis=1)]
     if len(both) < config.min_depth_inliers // 2:
@@ -168,3 +178,28 @@ def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCame
     if not np.isfinite(s_old_new) or s_old_new <= 0:
         return None
     return VerifiedLoop(sim3.from_rts(R_old_new, t_old_new, s_old_new), int(len(pairs)), int(len(inl)))
+
+
+def _geometric(new: CornerFeatures, old: CornerFeatures, pairs: np.ndarray, inl: np.ndarray,
+               e_inl: np.ndarray, R_old_new: np.ndarray, t_old_new: np.ndarray, camera: PinholeCamera,
+               config: LoopConfig) -> VerifiedLoop | None:
+    """Translation and scale of a verified loop from triangulated corners only
+    (:mod:`metricslam.slam.loop.geometric_sim3`) among the essential-matrix inliers ``e_inl``
+    (indices into ``pairs``; ``inl``: the PnP inliers)."""
+    g_old, g_new = old.geometric_points[pairs[:, 1]], new.geometric_points[pairs[:, 0]]
+    # the verification translation is in the verification points' units: rescale it to the old
+    # keyframe's triangulated units where both kinds of depth exist (1 when they are the same)
+    v_old = old.points[pairs[inl, 1]]
+    both = np.isfinite(v_old).all(axis=1) & np.isfinite(g_old[inl]).all(axis=1)
+    k = 1.0
+    if both.sum() >= 3:
+        k = float(np.exp(np.median(np.log(np.linalg.norm(g_old[inl][both], axis=1)
+                                          / np.linalg.norm(v_old[both], axis=1)))))
+    res = measure_loop(R_old_new, k * t_old_new, new.uv_px[pairs[e_inl, 0]], g_old[e_inl], g_new[e_inl],
+                       camera, sigma_rot_rad=config.rotation_sigma_rad,
+                       reprojection_px=config.geometric_reprojection_px,
+                       min_translation_points=config.min_geometric_points,
+                       min_scale_points=config.min_geometric_scale_points)
+    if res is None:
+        return None
+    return VerifiedLoop(res.S_old_new, int(len(pairs)), int(len(inl)), res.sigmas)

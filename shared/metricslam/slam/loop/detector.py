@@ -29,13 +29,15 @@ from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
 
 @dataclass(frozen=True)
 class LoopCandidate:
-    """A verified loop: ``S_old_new`` (4, 4) maps the new keyframe's frame/units into the old's."""
+    """A verified loop: ``S_old_new`` (4, 4) maps the new keyframe's frame/units into the old's;
+    ``sigmas`` (7,) ``[ω, u, λ]`` when the measurement came with its own covariance."""
 
     kf_old: int
     kf_new: int
     S_old_new: np.ndarray
     n_inliers: int
     score: float
+    sigmas: np.ndarray | None = None
 
 
 class LoopDetector:
@@ -84,7 +86,7 @@ class LoopDetector:
         gray = to_gray_u8(image)
         corner_mode = self.config.verification == "corners"
         uv_c = desc_c = None
-        if corner_mode and (inv_depth_map is None or not (self._calls - 1) % self.config.keyframe_stride):
+        if corner_mode:  # every keyframe: a queried keyframe triangulates against its predecessor
             uv_c, desc_c = corner_mod.detect_corners(self._orb_corners, gray)
         prev, self._prev_corners = self._prev_corners, ((uv_c, desc_c) if uv_c is not None else None)
         if (self._calls - 1) % self.config.keyframe_stride:
@@ -142,7 +144,7 @@ class LoopDetector:
             else:
                 res = verify(self._features[kf_id], self._features[old], camera, cfg, self._rng)
             if res is not None:
-                out.append(LoopCandidate(old, kf_id, res.S_old_new, res.n_inliers, float(scores[i])))
+                out.append(LoopCandidate(old, kf_id, res.S_old_new, res.n_inliers, float(scores[i]), res.sigmas))
                 self._last_loop_at = n - 1
                 self.n_verified += 1
                 break
@@ -150,15 +152,19 @@ class LoopDetector:
 
     def _corner_features(self, uv, desc, camera, shape_hw, lm_uv, lm_xi, inv_depth_map, T_prevkf_kf,
                          prev) -> corner_mod.CornerFeatures:
-        """Corners with 3-D points in keyframe units: network depth, else triangulation."""
-        pts = np.full((len(uv), 3), np.nan)
-        if inv_depth_map is not None:
-            size = (int(shape_hw[1]), int(shape_hw[0]))
-            lm_uv = np.asarray(lm_uv, float).reshape(-1, 2)
-            m_per_unit = corner_mod.metres_per_unit(lm_xi, sample_map(inv_depth_map, lm_uv, size))
-            if m_per_unit is not None and len(uv):
-                pts = corner_mod.network_points(uv, sample_map(inv_depth_map, uv, size), m_per_unit, camera)
-        elif prev is not None and T_prevkf_kf is not None and len(uv):
-            pts = corner_mod.triangulated_points(uv, desc, prev[0], prev[1], T_prevkf_kf, camera,
+        """Corners with 3-D points in keyframe units: triangulated against the previous keyframe
+        (``points_geo``, what measures a loop), and for verification the network's depth in
+        scale mode (many more corners), else the triangulated ones."""
+        tri = np.full((len(uv), 3), np.nan)
+        if prev is not None and prev[0] is not None and T_prevkf_kf is not None and len(uv):
+            tri = corner_mod.triangulated_points(uv, desc, prev[0], prev[1], T_prevkf_kf, camera,
                                                  self.config.hamming_ratio)
-        return corner_mod.CornerFeatures(uv, desc, pts)
+        if inv_depth_map is None:
+            return corner_mod.CornerFeatures(uv, desc, tri)
+        pts = np.full((len(uv), 3), np.nan)
+        size = (int(shape_hw[1]), int(shape_hw[0]))
+        lm_uv = np.asarray(lm_uv, float).reshape(-1, 2)
+        m_per_unit = corner_mod.metres_per_unit(lm_xi, sample_map(inv_depth_map, lm_uv, size))
+        if m_per_unit is not None and len(uv):
+            pts = corner_mod.network_points(uv, sample_map(inv_depth_map, uv, size), m_per_unit, camera)
+        return corner_mod.CornerFeatures(uv, desc, pts, tri)

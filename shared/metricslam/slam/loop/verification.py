@@ -69,9 +69,13 @@ def landmark_features(orb: cv2.ORB, image_gray: np.ndarray, camera: PinholeCamer
 
 @dataclass(frozen=True)
 class VerifiedLoop:
+    """``S_old_new`` (4, 4), match / inlier counts and, when measured from geometry, the
+    tangent sigmas (7,) ``[ω, u, λ]`` of the measurement (else None: configured sigmas)."""
+
     S_old_new: np.ndarray
     n_matches: int
     n_inliers: int
+    sigmas: np.ndarray | None = None
 
 
 def _match(d_new: np.ndarray, d_old: np.ndarray, ratio: float) -> np.ndarray:
