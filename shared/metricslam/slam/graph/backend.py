@@ -226,6 +226,7 @@ class GlobalBackend:
             "segment_links": self._stats["segment_links"],
             "epoch_mismatches": self._stats["epoch_mismatches"],
             "graph_rebuilds": self.graph.n_rebuilds,
+            "graph_stabilized": self.graph.n_stabilized,
             "depth_ms_mean": _mean(list(self._depth_ms)),
             "solve_ms_mean": _mean(solve_ms),
             "solve_ms_max": float(max(solve_ms)) if solve_ms else 0.0,

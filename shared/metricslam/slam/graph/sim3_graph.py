@@ -28,6 +28,8 @@ log = logging.getLogger(__name__)
 
 #: chi-square gate (7 dof) on a loop's innovation against the predicted relative-pose covariance.
 LOOP_GATE_CHI2 = 200.0
+#: sigmas ``[ω, u, λ]`` of the weak prior that makes an indeterminate keyframe solvable again.
+STABILIZER_SIGMAS = np.array([0.1] * 3 + [100.0] * 3 + [1.0])
 #: sigma of the gauge prior on the first keyframe: firm, but not so firm that Cholesky on
 #: 1e12-vs-1e2 information becomes indeterminate.
 ANCHOR_SIGMA = 1e-3
@@ -73,6 +75,9 @@ class GlobalPoseGraph:
         self.n_loops_accepted = 0
         self.n_loops_rejected = 0
         self.n_rebuilds = 0
+        self.n_stabilized = 0
+        self._corrupt_at: int | None = None  # factors committed before a failed ISAM2 update
+        self._uncommitted: list[int] = []  # keyframes added since the last successful update
 
     # -- construction -------------------------------------------------------------------------
     def has(self, kf_id: int) -> bool:
@@ -106,6 +111,7 @@ class GlobalPoseGraph:
         S_guess = to_gtsam(S_world_kf_guess)
         self._new_values.insert(key(kf_id), S_guess)
         self._latest[kf_id] = S_guess
+        self._uncommitted.append(kf_id)
         first = not self._keyframes
         self._keyframes.append(kf_id)
         if first:
@@ -186,7 +192,7 @@ class GlobalPoseGraph:
         rel = S_old.between(S_new)
         innov = gtsam.Similarity3.Logmap(meas.inverse().compose(rel))
         cov = np.diag(sigmas**2)
-        if self._isam.valueExists(key(kf_old)) and self._isam.valueExists(key(kf_new)):
+        if self._corrupt_at is None and self._isam.valueExists(key(kf_old)) and self._isam.valueExists(key(kf_new)):
             kl = gtsam.KeyVector([key(kf_old), key(kf_new)])
             try:
                 joint = self._isam.jointMarginalCovariance(kl).fullMatrix()
@@ -215,18 +221,25 @@ class GlobalPoseGraph:
         kinds = self._pending_kinds
         has_loop = any(isinstance(k, tuple) for k in kinds)
         n_iter = 1
-        if has_loop:  # a loop moves the whole map: one batch LM beats many relinearized updates
+        if has_loop or self._corrupt_at is not None:
+            # a loop moves the whole map: one batch LM beats many relinearized updates; after a
+            # failed update the ISAM2 object is unusable until a rebuild succeeds
             self._rebuild()
         else:
+            # a failed ISAM2 update has already taken in the new factors and values: rebuild from
+            # the factors committed before it (plus the pending ones), never from its leftovers
+            n_committed = self._isam.getFactorsUnsafe().size()
             try:
                 result = self._isam.update(self._new_factors, self._new_values)
+                self._uncommitted = []
                 for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
                     self._factor_kinds[idx] = kind
             except RuntimeError as exc:  # ill-conditioned incremental step: rebuild from batch
                 log.warning("ISAM2 update failed (%s); rebuilding from a batch solve",
-                            str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
-                self._rebuild()
+                            " ".join(str(exc).split())[:160] or type(exc).__name__)
                 self.n_rebuilds += 1
+                self._corrupt_at = n_committed
+                self._rebuild()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._pending_kinds = []
@@ -237,11 +250,18 @@ class GlobalPoseGraph:
         return {"loops_removed": removed, "iterations": n_iter}
 
     def _rebuild(self) -> None:
-        """Batch Levenberg-Marquardt on every factor (ISAM2's and the pending ones), then a fresh
-        ISAM2 seeded with the result. Raises :class:`GraphError` if the batch solve fails too."""
+        """Batch Levenberg-Marquardt on every factor (ISAM2's, only those committed before a
+        failed update, and the pending ones), then a fresh ISAM2 seeded with the result.
+
+        If the fresh ISAM2 still finds the system indeterminate near a keyframe (LM's damping
+        hides what plain Cholesky cannot factor), that keyframe gets a weak prior at its solved
+        pose (:data:`STABILIZER_SIGMAS`, counted in ``n_stabilized``) and the rebuild is retried;
+        a state that cannot be rebuilt at all raises :class:`GraphError` and leaves this graph
+        as it was before the call (pending factors kept)."""
         old_factors = self._isam.getFactorsUnsafe()
+        n_old = old_factors.size() if self._corrupt_at is None else min(self._corrupt_at, old_factors.size())
         graph, kinds = gtsam.NonlinearFactorGraph(), []
-        for i in range(old_factors.size()):
+        for i in range(n_old):
             f = old_factors.at(i)
             if f is not None:
                 graph.add(f)
@@ -254,13 +274,38 @@ class GlobalPoseGraph:
         for kf in self._keyframes:
             k = key(kf)
             values.insert(k, theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf])
-        try:
-            values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
-            self._isam = gtsam.ISAM2(self._params)
-            result = self._isam.update(graph, values)
-        except RuntimeError as exc:
-            raise GraphError(f"global graph could not be solved even in batch ({exc}); a keyframe is "
-                             "probably unconstrained") from exc
+        last_exc: Exception | None = None
+        result = None
+        stabilized: set[int] = set()
+        for _ in range(4):
+            try:
+                values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+                isam = gtsam.ISAM2(self._params)
+                result = isam.update(graph, values)
+                break
+            except RuntimeError as exc:
+                last_exc = exc
+                near = _indeterminate_keyframe(exc)
+                if near is None:
+                    break
+                # gtsam names the variable being eliminated, maybe a neighbour of the culprit;
+                # the culprit is new (the committed graph was solvable): stabilize the new
+                # keyframes and the named one, then its neighbours too
+                todo = [*self._uncommitted, near] if not stabilized else [near - 1, near, near + 1]
+                todo = [k for k in dict.fromkeys(todo) if k not in stabilized and values.exists(key(k))]
+                if not todo:
+                    break
+                log.warning("global graph indeterminate near keyframe %d; weak prior on %s", near, todo)
+                for kf in todo:
+                    graph.add(gtsam.PriorFactorSimilarity3(key(kf), values.atSimilarity3(key(kf)),
+                                                           gtsam.noiseModel.Diagonal.Sigmas(STABILIZER_SIGMAS)))
+                    kinds.append("stabilizer")
+                    stabilized.add(kf)
+                    self.n_stabilized += 1
+        if result is None:
+            raise GraphError(f"global graph could not be solved even in batch ({last_exc}); a keyframe is "
+                             "probably unconstrained") from last_exc
+        self._isam, self._corrupt_at, self._uncommitted = isam, None, []
         self._factor_kinds, self._loop_indices = {}, {}
         for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
             self._factor_kinds[idx] = kind
@@ -311,13 +356,13 @@ class GlobalPoseGraph:
         """Latest ``S_world_kf`` (4, 4) of one keyframe."""
         if not self.has(kf_id):
             raise GraphError(f"keyframe {kf_id} is not in the global graph")
-        if self._isam.valueExists(key(kf_id)):
+        if self._corrupt_at is None and self._isam.valueExists(key(kf_id)):
             return from_gtsam(self._isam.calculateEstimateSimilarity3(key(kf_id)))
         return from_gtsam(self._latest[int(kf_id)])
 
     def estimates(self) -> dict[int, np.ndarray]:
         """``kf_id -> S_world_kf`` (4, 4) for every keyframe (full back-substitution, O(n))."""
-        est = self._isam.calculateEstimate() if self._isam.size() else gtsam.Values()
+        est = self._isam.calculateEstimate() if self._isam.size() and self._corrupt_at is None else gtsam.Values()
         out = {}
         for kf in self._keyframes:
             S = est.atSimilarity3(key(kf)) if est.exists(key(kf)) else self._latest[kf]
@@ -345,3 +390,11 @@ class GlobalPoseGraph:
     @property
     def n_loops(self) -> int:
         return self.n_loops_accepted
+
+
+def _indeterminate_keyframe(exc: Exception) -> int | None:
+    """Keyframe id named in gtsam's IndeterminateLinearSystem message ("Symbol: s913"), or None."""
+    import re
+
+    m = re.search(r"Symbol: s(\d+)", str(exc))
+    return int(m.group(1)) if m else None

@@ -1,0 +1,49 @@
+"""A failed ISAM2 update (indeterminate system) is recovered without corrupting the graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from metricslam.geometry import sim3
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.odometry import odometry_information, relative_sim3
+from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
+from metricslam.slam.graph.synthetic import SimulatedVO, circle_path
+
+
+def _chain(n: int, cfg: GraphConfig) -> tuple[GlobalPoseGraph, list]:
+    vo = SimulatedVO(circle_path(n + 10, 40.0, 0.5), drift_per_kf=0.0, drift_noise=0.0, seed=1)
+    graph = GlobalPoseGraph(cfg, anchor_scale=True)
+    kfs = [vo.next_keyframe() for _ in range(n)]
+    for prev, kf in zip([None] + kfs[:-1], kfs):
+        if prev is None:
+            graph.add_keyframe(kf.kf_id, kf.T_vo_kf)
+        else:
+            S = relative_sim3(prev.T_vo_kf, kf.T_vo_kf)
+            graph.add_keyframe(kf.kf_id, graph.estimate(prev.kf_id) @ S, prev.kf_id, S,
+                               odometry_information(S, None, cfg))
+        graph.solve()
+    return graph, kfs + [vo.next_keyframe() for _ in range(3)]
+
+
+def test_indeterminate_update_is_rebuilt_and_later_updates_work():
+    cfg = GraphConfig()
+    graph, kfs = _chain(12, cfg)
+    before = graph.estimates()
+    prev, bad = kfs[11], kfs[12]
+    S = relative_sim3(prev.T_vo_kf, bad.T_vo_kf)
+    info = odometry_information(S, None, cfg)
+    info[6, 6] = 0.0  # the new keyframe's scale is constrained by nothing: ISAM2 cannot factor
+    graph.add_keyframe(bad.kf_id, graph.estimate(prev.kf_id) @ S, prev.kf_id, S, info)
+    graph.solve()  # must not raise: batch rebuild, weak prior on the indeterminate keyframe
+    assert graph.n_rebuilds == 1 and graph.n_stabilized >= 1
+    after = graph.estimates()
+    assert max(np.abs(after[k] - before[k]).max() for k in before) < 1e-3  # old map unchanged
+    assert np.allclose(after[bad.kf_id], before[prev.kf_id] @ S, atol=1e-3)
+    # no "key already exists" afterwards: later keyframes go in incrementally
+    for p, k in ((kfs[12], kfs[13]), (kfs[13], kfs[14])):
+        S = relative_sim3(p.T_vo_kf, k.T_vo_kf)
+        graph.add_keyframe(k.kf_id, graph.estimate(p.kf_id) @ S, p.kf_id, S, odometry_information(S, None, cfg))
+        graph.solve()
+    assert graph.n_rebuilds == 1 and graph.n_keyframes == 15
+    assert np.isfinite(sim3.scale(graph.estimate(kfs[14].kf_id)))
