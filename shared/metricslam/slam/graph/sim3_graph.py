@@ -175,7 +175,7 @@ class GlobalPoseGraph:
             # against the (much tighter) loop noise alone it can be 100 sigma after a long drift.
             # Keep that innovation inside the kernel's quadratic zone: a fixed threshold would cap
             # the loop's pull and leave a correct loop half closed (2 km synthetic run: 5 m left).
-            S_old, S_new = self._latest[int(kf_old)], self._latest[int(kf_new)]
+            S_old, S_new = self._current(kf_old), self._current(kf_new)
             innov = gtsam.Similarity3.Logmap(meas.inverse().compose(S_old.between(S_new)))
             k = max(k, 1.5 * float(np.linalg.norm(innov / sigmas)))
         est = {"dcs": gtsam.noiseModel.mEstimator.DCS, "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
@@ -188,7 +188,7 @@ class GlobalPoseGraph:
 
     def _loop_mahalanobis_sq(self, kf_old: int, kf_new: int, meas: gtsam.Similarity3,
                              sigmas: np.ndarray) -> float:
-        S_old, S_new = self._latest[int(kf_old)], self._latest[int(kf_new)]
+        S_old, S_new = self._current(kf_old), self._current(kf_new)
         rel = S_old.between(S_new)
         innov = gtsam.Similarity3.Logmap(meas.inverse().compose(rel))
         cov = np.diag(sigmas**2)
@@ -204,6 +204,14 @@ class GlobalPoseGraph:
             return float(innov @ np.linalg.solve(cov, innov))
         except np.linalg.LinAlgError:
             return float("inf")
+
+    def _current(self, kf_id: int) -> gtsam.Similarity3:
+        """Current estimate of one keyframe (``_latest`` is refreshed only for the newest ones
+        between loops; an old loop end must be read from ISAM2)."""
+        k = key(int(kf_id))
+        if self._corrupt_at is None and self._isam.valueExists(k):
+            return self._isam.calculateEstimateSimilarity3(k)
+        return self._latest[int(kf_id)]
 
     def _add(self, factor: gtsam.NonlinearFactor, kind: object) -> None:
         self._new_factors.add(factor)

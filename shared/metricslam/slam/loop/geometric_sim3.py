@@ -113,14 +113,16 @@ def measure_loop(R_old_new: np.ndarray, t_old_new_init: np.ndarray, uv_new: np.n
     if has_old.sum() < min_translation_points:
         return None
     idx = np.flatnonzero(has_old)
-    t0 = -R_new_old @ np.asarray(t_old_new_init, float)
-    X0 = p_old[idx] @ R_new_old.T + t0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e0 = np.linalg.norm(_project(camera, X0) - uv_new[idx], axis=1)
-    near = (X0[:, 2] > 1e-6) & (e0 < 4.0 * reprojection_px)  # the guess is good: gate first
-    if near.sum() >= min_translation_points:
-        idx = idx[near]
-    t_no, _, e = refine_translation(R_new_old, t0, p_old[idx], uv_new[idx], camera)
+    t_no = -R_new_old @ np.asarray(t_old_new_init, float)
+    gate = 4.0 * reprojection_px  # the guess is close: gate, refine, re-select from all, refine
+    for _ in range(3):
+        _, _, e = refine_translation(R_new_old, t_no, p_old[idx], uv_new[idx], camera, iterations=0)
+        sel = idx[e < gate]
+        if len(sel) < min_translation_points:
+            return None
+        t_no, _, _ = refine_translation(R_new_old, t_no, p_old[sel], uv_new[sel], camera)
+        gate = reprojection_px
+    _, _, e = refine_translation(R_new_old, t_no, p_old[idx], uv_new[idx], camera, iterations=0)
     inl = idx[e < reprojection_px]
     if len(inl) < min_translation_points:
         return None
