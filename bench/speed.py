@@ -68,6 +68,8 @@ def run_mode(seq: str, mode: str, workdir: Path, max_frames: int | None) -> dict
     if os.waitstatus_to_exitcode(status) != 0:
         return {"mode": mode, "command": shown, "error": stderr[-600:]}
     stats = json.loads(stats_path.read_text())
+    # the per-keyframe scale lists belong to the accuracy figures, not the speed table
+    stats = {k: v for k, v in stats.items() if k not in ("scale_history", "scale_corrections")}
     return {"mode": mode, "command": shown, "stats": stats, "wall_s": wall_s,
             "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mib": usage.ru_maxrss / 1024.0}
 
