@@ -18,7 +18,8 @@ from metricslam.slam.graph.synthetic import CAMERA
 from metricslam.slam.loop.geometric_sim3 import UNIT_SIGMA_LOG, measure_loop
 
 
-def _scene(seed: int, m_old: float, m_new: float, t_m: np.ndarray, n: int = 60, outliers: int = 10):
+def _scene(seed: int, m_old: float, m_new: float, t_m: np.ndarray, n: int = 60, outliers: int = 10,
+           unit_sigma: float = UNIT_SIGMA_LOG):
     rng = np.random.default_rng(seed)
     uv = np.column_stack([rng.uniform(20, CAMERA.width_px - 20, n), rng.uniform(10, CAMERA.height_px - 10, n)])
     P_old_m = CAMERA.unproject(uv, rng.uniform(4.0, 30.0, n))  # metric, old camera frame
@@ -27,7 +28,7 @@ def _scene(seed: int, m_old: float, m_new: float, t_m: np.ndarray, n: int = 60, 
     uv_new = CAMERA.project(P_new_m) + 0.5 * rng.normal(size=(n, 2))
     # per-point depth noise 1 %, and each keyframe's triangulated units off by UNIT_SIGMA_LOG
     # (measured spread of triangulated vs true units on the rendered loop)
-    u_old, u_new = np.exp(UNIT_SIGMA_LOG * rng.normal(size=2))
+    u_old, u_new = np.exp(unit_sigma * rng.normal(size=2))
     p_old = P_old_m / m_old * u_old * np.exp(0.01 * rng.normal(size=(n, 1)))
     p_new = P_new_m / m_new * u_new * np.exp(0.01 * rng.normal(size=(n, 1)))
     p_new[rng.random(n) < 0.4] = np.nan  # not every corner is triangulated on both sides
@@ -40,7 +41,7 @@ def _scene(seed: int, m_old: float, m_new: float, t_m: np.ndarray, n: int = 60, 
 def test_unit_ratio_and_motion_whatever_the_guess(seed, log_ratio, guess_bias):
     m_old = 2.0
     m_new = m_old * float(np.exp(log_ratio))
-    T, uv_new, p_old, p_new = _scene(seed, m_old, m_new, np.array([1.5, 0.1, 3.0]))
+    T, uv_new, p_old, p_new = _scene(seed, m_old, m_new, np.array([1.5, 0.1, 3.0]), unit_sigma=0.0)
     guess = T[:3, 3] / m_old * guess_bias  # e.g. the network's units, off by guess_bias
     res = measure_loop(T[:3, :3], guess, uv_new, p_old, p_new, CAMERA, sigma_rot_rad=0.01)
     assert res is not None

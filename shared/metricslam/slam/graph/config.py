@@ -68,6 +68,9 @@ class GraphConfig(BaseModel):
         loop_kernel_param: its parameter (whitened units).
         loop_reject_chi2: after a solve, a loop whose whitened squared error exceeds this is
             removed as a false loop.
+        factorization: ISAM2 / batch LM elimination. "QR" (default): gtsam's Cholesky treats
+            pivots below an absolute 1e-6 as zero and so reports a long loop-free chain, whose
+            far end is known only to hundreds of metres, as indeterminate.
         relinearize_threshold / relinearize_skip: ISAM2 relinearization controls.
         extra_iterations: extra ISAM2 updates after a loop or a batch of scale factors.
         depth_queue_size: bounded depth-request queue; when full the OLDEST request is dropped.
@@ -95,6 +98,7 @@ class GraphConfig(BaseModel):
     loop_kernel: str = Field(default="huber", pattern="^(dcs|cauchy|huber)$")
     loop_kernel_param: float = Field(default=2.0, gt=0)
     loop_reject_chi2: float = Field(default=50.0, gt=0)
+    factorization: str = Field(default="QR", pattern="^(QR|CHOLESKY)$")
     relinearize_threshold: float = Field(default=0.01, gt=0)
     relinearize_skip: int = Field(default=10, ge=1)
     extra_iterations: int = Field(default=0, ge=0)

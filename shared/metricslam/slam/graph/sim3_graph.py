@@ -59,6 +59,10 @@ class GlobalPoseGraph:
         self.config = config or GraphConfig()
         self.anchor_scale = anchor_scale
         params = gtsam.ISAM2Params()
+        # QR, not Cholesky: gtsam's Cholesky treats pivots below an absolute 1e-6 as zero, and the
+        # far end of a long loop-free chain has less information than that in its horizontal
+        # position (σ of hundreds of metres): "IndeterminateLinearSystem" on a well-posed graph
+        params.setFactorization(self.config.factorization)
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = self.config.relinearize_skip
         self._params = params
@@ -287,7 +291,7 @@ class GlobalPoseGraph:
         stabilized: set[int] = set()
         for _ in range(4):
             try:
-                values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+                values = gtsam.LevenbergMarquardtOptimizer(graph, values, self._lm_params()).optimize()
                 isam = gtsam.ISAM2(self._params)
                 result = isam.update(graph, values)
                 break
@@ -321,6 +325,11 @@ class GlobalPoseGraph:
                 self._loop_indices[idx] = kind[1:]
         for kf in self._keyframes:
             self._latest[kf] = values.atSimilarity3(key(kf))
+
+    def _lm_params(self) -> gtsam.LevenbergMarquardtParams:
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setLinearSolverType("MULTIFRONTAL_QR" if self.config.factorization == "QR" else "MULTIFRONTAL_CHOLESKY")
+        return lm
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
         """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
