@@ -40,8 +40,8 @@ from metricslam.geometry import so3
 from metricslam.slam.pipeline import SlamPipeline
 from metricslam.slam.vo.config import VOConfig
 
-LK = dict(winSize=(21, 21), maxLevel=3,
-          criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+LK = {"winSize": (21, 21), "maxLevel": 3,
+      "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
 
 def corners(gray: np.ndarray, n: int = 2000) -> np.ndarray:
@@ -81,8 +81,8 @@ def stereo_pnp_rotation(K: np.ndarray, baseline_m: float, left: np.ndarray, righ
     y = (p_px[ok, 1] - K[1, 2]) / K[1, 1] * z
     P = np.stack([x, y, z], axis=1).astype(np.float64)
     uv = q_n[ok].astype(np.float64)
-    okp, rvec, tvec, inl = cv2.solvePnPRansac(P, uv, K, None, reprojectionError=1.0,
-                                              iterationsCount=500, flags=cv2.SOLVEPNP_ITERATIVE)
+    _okp, rvec, tvec, inl = cv2.solvePnPRansac(P, uv, K, None, reprojectionError=1.0,
+                                               iterationsCount=500, flags=cv2.SOLVEPNP_ITERATIVE)
     inl = inl.ravel()
     rvec, tvec = cv2.solvePnPRefineLM(P[inl], uv[inl], K, None, rvec, tvec)
     R_n_i = cv2.Rodrigues(rvec)[0]
@@ -145,7 +145,7 @@ def three_cornered_hat(e_a: np.ndarray, e_b: np.ndarray) -> dict:
     """Per-axis noise sigmas (mdeg per frame pair) of GT, A and B from A−GT and B−GT errors (N, 3),
     assuming independent errors (Allan/Gray three-cornered hat on the mean-removed series)."""
     va, vb, vab = np.var(e_a, axis=0), np.var(e_b, axis=0), np.var(e_a - e_b, axis=0)
-    sig = lambda v: [round(float(np.sqrt(max(x, 0.0))), 1) for x in v]  # noqa: E731
+    sig = lambda v: [round(float(np.sqrt(max(x, 0.0))), 1) for x in v]
     return {"gt": sig((va + vb - vab) / 2), "a": sig((va + vab - vb) / 2), "b": sig((vb + vab - va) / 2)}
 
 
@@ -218,7 +218,7 @@ def analyse(path: Path, n_max: int | None, n_draws: int = 50) -> dict:
     R_st = rel_rot(stereo)
     e_vo, e_ess, e_st = err_pyr_mdeg(R_gt, R_vo), err_pyr_mdeg(R_gt, R_ess), err_pyr_mdeg(R_gt, R_st)
     w_gt = np.degrees(np.array([so3.log(R) for R in R_gt]))
-    yaw = lambda R: np.degrees(np.array([so3.log(r) for r in R]))[:, 1]  # noqa: E731
+    yaw = lambda R: np.degrees(np.array([so3.log(r) for r in R]))[:, 1]
     # essential-matrix chain with GT translation lengths (rotation only matters for r_rel)
     ess_chain = [np.eye(4)]
     for i, R in enumerate(R_ess):
@@ -276,7 +276,7 @@ def analyse(path: Path, n_max: int | None, n_draws: int = 50) -> dict:
 def to_markdown(res: list[dict], command: str) -> str:
     lines = ["# Rotational error of the local VO on the KITTI extracts: where it comes from", "",
              f"Command: `{command}`", "",
-             "Errors are log(R_gt⁻¹ R_est) of each frame pair's relative rotation in the camera "
+             ("Errors are log(R_gt⁻¹ R_est) of each frame pair's relative rotation in the camera "
              "frame: pitch (x, right), yaw (y, down), roll (z, forward), millidegrees. Estimators: "
              "`vo` = the local VO (inline BA); `essential` = findEssentialMat + recoverPose on "
              "fresh LK tracks of the pair; `stereo_pnp` = image_1 stereo points of frame i, PnP in "
@@ -291,15 +291,15 @@ def to_markdown(res: list[dict], command: str) -> str:
              "rotate as the stereo reference says (the score of an estimator that is perfect "
              "elsewhere and follows the images there). 'starts "
              "before/from' split the devkit start frames at the first one after the interpolated "
-             "GT.", ""]
+             "GT."), ""]
     for r in res:
         s = r["summary"]
         lines += [f"## {r['sequence']}", "",
-                  f"K: fx {r['fx_px']:.3f}, cx {r['cx_px']:.3f}, cy {r['cy_px']:.3f} px, image "
+                  (f"K: fx {r['fx_px']:.3f}, cx {r['cx_px']:.3f}, cy {r['cy_px']:.3f} px, image "
                   f"{r['size'][0]}x{r['size'][1]}. GT rotation increments constant (interpolated) "
                   f"up to pair {r['gt_constant_increments_until_pair']}; per-frame statistics "
                   f"below start there, 'from' columns use devkit start frames ≥ "
-                  f"{r['segments_counted_from_frame']}.", "",
+                  f"{r['segments_counted_from_frame']}."), "",
                   "| estimator | mean err pitch/yaw/roll mdeg/frame | rms err p/y/r | yaw sum / GT |",
                   "| --- | --- | --- | --- |"]
         for k in ("vo", "essential", "stereo_pnp"):
@@ -307,11 +307,11 @@ def to_markdown(res: list[dict], command: str) -> str:
             lines.append(f"| {k} | {v['mean_err_pitch_yaw_roll_mdeg']} | "
                          f"{v['rms_err_pitch_yaw_roll_mdeg']} | {v['yaw_sum_over_gt']:.4f} |")
         h = s["sigma_pair_mdeg_pyr"]
-        lines += ["", f"Three-cornered hat (independent noise per frame pair, mdeg, p/y/r): GT "
+        lines += ["", (f"Three-cornered hat (independent noise per frame pair, mdeg, p/y/r): GT "
                   f"{h['gt']}, VO {h['vo']}, stereo PnP {h['stereo_pnp']}. Rotation-rate bias seen "
                   f"by both references against GT (axes where both are significant and agree, else 0): "
                   f"{s['reference_bias_mdeg_per_frame_pyr']} "
-                  f"mdeg/frame (GT total yaw {s['gt_total_yaw_deg']:.2f}°).", "",
+                  f"mdeg/frame (GT total yaw {s['gt_total_yaw_deg']:.2f}°)."), "",
                   "| r_rel deg/100 m | all segments | starts before | starts from | L = 10 m | L = 50 m |",
                   "| --- | --- | --- | --- | --- | --- |"]
         for k, v in r["r_rel"].items():

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from metricslam.camera import PinholeCamera
 from metricslam.geometry import se3, so3
 from metricslam.slam.vo.ba import bundle_adjust
