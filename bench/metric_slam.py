@@ -47,6 +47,23 @@ def end_errors(est_path: Path, gt_path: str) -> dict:
             "gap_err_m": float(np.linalg.norm(d_est - d_gt))}
 
 
+def loop_truth(loops: list, gt_path: str, max_dist_m: float = 20.0, max_rot_deg: float = 15.0) -> list[bool]:
+    """For each accepted loop (input frame pair), whether ground truth puts the two frames within
+    ``max_dist_m`` and ``max_rot_deg`` of each other (a true revisit)."""
+    import numpy as np
+
+    from metricslam.geometry import se3, so3
+    from metricslam.trajectory.io import read_kitti_poses
+
+    gt = read_kitti_poses(gt_path)
+    out = []
+    for a, b in loops:
+        T = se3.inverse(gt[a]) @ gt[b]
+        out.append(bool(np.linalg.norm(T[:3, 3]) < max_dist_m
+                        and np.degrees(np.linalg.norm(so3.log(T[:3, :3]))) < max_rot_deg))
+    return out
+
+
 def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, preset: str | None) -> None:
     """``metricslam run`` with loop closure disabled (ablation; same pipeline otherwise)."""
     import numpy as np
@@ -106,7 +123,55 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
         "fps_wall": s.get("fps") or (n / wall if n else None),  # run's own frames / s (with depth)
         "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
         **end_errors(est, gt),
+        "loops_true": loop_truth(s.get("backend", s).get("loops", []), gt),
     }
+
+
+def render(rows: list[dict], commands: list[str], machine: str) -> str:
+    """Markdown table of :func:`run_one` rows (also used by ``--render`` on saved JSON)."""
+    lines = ["# Metric SLAM: learned scale vs --no-scale", "",
+             *(f"Command: `.venv/bin/python {c}`  " for c in commands),
+             f"Machine: {machine} (2 cores shared with other jobs while measured)", "",
+             "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | r_rel °/100 m | end err Sim(3) m | fps | keyframes | scale factors | loops verified / accepted (true) | accepted loops (frames) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['name']} | failed: {r['error'][-200:]!r} |")
+            continue
+        m, s = r["metrics"], r["stats"]
+        back = s.get("backend", s)
+        loops = back.get("loops", [])
+        lines.append(
+            f"| {r['name']} | {m.get('n_frames')} | {m.get('path_length_m', float('nan')):.0f} | "
+            f"{m.get('scale_ratio', float('nan')):.3f} | {m.get('scale_error_pct', float('nan')):.1f} | "
+            f"{m.get('ate_rmse_m', float('nan')):.2f} | {r['ate_pct_of_path'] or float('nan'):.2f} | "
+            f"{m.get('t_rel_pct', float('nan')):.2f} | {m.get('r_rel_deg_per_100m') or float('nan'):.3f} | "
+            f"{r['end_err_m']:.2f} | {r['fps_wall'] or float('nan'):.1f} | "
+            f"{back.get('keyframes', '?')} | {back.get('scale_factors', '?')} | "
+            f"{back.get('loops_verified', '?')} / {len(loops)} ({sum(r.get('loops_true', []))}) | "
+            f"{loops[:8]}{' …' if len(loops) > 8 else ''} |")
+    return "\n".join(lines) + "\n"
+
+
+def render_saved(json_paths: list[str], out: Path) -> None:
+    """Re-render OUT.md (and a merged OUT.json) from earlier runs' JSON files; fills the
+    true/false loop check from the ground truth named in each run's command."""
+    rows, commands, machine = [], [], ""
+    for jp in json_paths:
+        saved = json.loads(Path(jp).read_text())
+        commands.append(saved["command"])
+        machine = saved["machine"]
+        argv = saved["command"].split()
+        gts = {a.split("=", 1)[0]: a.rsplit(":", 1)[1] for a in argv if "=" in a and ":" in a}
+        for r in saved["rows"]:
+            if "error" not in r and "loops_true" not in r:
+                gt = next(g for n, g in gts.items() if r["name"].startswith(n + "_"))
+                r["loops_true"] = loop_truth(r["stats"].get("backend", r["stats"]).get("loops", []), gt)
+            rows.append(r)
+    text = render(rows, commands, machine)
+    out.with_suffix(".md").write_text(text)
+    out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine, "commands": commands},
+                                                   indent=2, default=str))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "--_noloops":  # internal: the ablation driver in its own process
         seq_dir, out, stats, no_scale, preset = argv[1:6]
         run_without_loops(seq_dir, out, stats, no_scale == "True", preset)
+        return 0
+    if argv and argv[0] == "--render":  # --render A.json [B.json ...] --out OUT
+        k = argv.index("--out")
+        render_saved(argv[1:k], Path(argv[k + 1]))
         return 0
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, metavar="NAME=SEQ_DIR:GT.txt")
@@ -143,26 +212,7 @@ def main(argv: list[str] | None = None) -> int:
         machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
         out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
                                                         "command": " ".join(sys.argv)}, indent=2, default=str))
-        lines = ["# Metric SLAM: learned scale vs --no-scale", "",
-                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ",
-                 f"Machine: {machine} (2 cores shared with other jobs while measured)", "",
-                 "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | end err Sim(3) m | fps | keyframes | scale factors | loops verified / accepted | accepted loops (frames) |",
-                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-        for r in rows:
-            if "error" in r:
-                lines.append(f"| {r['name']} | failed: {r['error'][-200:]!r} |")
-                continue
-            m, s = r["metrics"], r["stats"]
-            back = s.get("backend", s)
-            loops = back.get("loops", [])
-            lines.append(
-                f"| {r['name']} | {m.get('n_frames')} | {m.get('path_length_m', float('nan')):.0f} | "
-                f"{m.get('scale_ratio', float('nan')):.3f} | {m.get('scale_error_pct', float('nan')):.1f} | "
-                f"{m.get('ate_rmse_m', float('nan')):.2f} | {r['ate_pct_of_path'] or float('nan'):.2f} | "
-                f"{m.get('t_rel_pct', float('nan')):.2f} | {r['end_err_m']:.2f} | {r['fps_wall'] or float('nan'):.1f} | "
-                f"{back.get('keyframes', '?')} | {back.get('scale_factors', '?')} | "
-                f"{back.get('loops_verified', '?')} / {len(loops)} | {loops[:8]}{' …' if len(loops) > 8 else ''} |")
-        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+        out.with_suffix(".md").write_text(render(rows, [" ".join(sys.argv)], machine))
     return 0
 
 
