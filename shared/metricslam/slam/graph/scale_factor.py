@@ -13,7 +13,8 @@ Two modes (``GraphConfig.scale_factor_mode``):
 * ``"per_landmark"`` — eq. 13 literally: one Huber factor per landmark.
 * ``"per_keyframe"`` (default) — the landmark factors of keyframe ``i`` touch only ``s_i``, so
   their sum is a 1-D robust cost in ``log s_i``; we minimize it in numpy (Huber IRLS, same σ and
-  ε_s) and add ONE Gaussian factor at the M-estimate with its curvature ``Σ w_j / σ²``. At the
+  ε_s) and add ONE Gaussian factor at the M-estimate with its curvature ``Σ w_j / σ²`` (sigma
+  floored at ``scale_sigma_floor_log``: the network errs per image, not per landmark). At the
   joint optimum this differs only through where the Huber weights are evaluated; it keeps the
   graph at one scale factor per keyframe (48x fewer factors), which is what keeps ISAM2's
   per-keyframe cost flat at 10,000 keyframes (``bench/results/graph_scaling.md``).
@@ -87,6 +88,7 @@ def make_keyframe_scale_factor(key: int, S_current: gtsam.Similarity3, scales: n
                                config: GraphConfig) -> gtsam.PriorFactorSimilarity3:
     """One Gaussian log-scale factor summarizing a keyframe's landmark measurements."""
     log_s, sigma_eff = robust_log_scale(scales, config.scale_sigma_log, config.scale_huber_k)
+    sigma_eff = max(sigma_eff, config.scale_sigma_floor_log)  # the image's error, not the landmarks'
     noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA] * 6 + [sigma_eff]))
     return gtsam.PriorFactorSimilarity3(key, with_scale(S_current, float(np.exp(log_s))), noise)
 
