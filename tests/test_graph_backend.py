@@ -6,14 +6,18 @@ import threading
 
 import numpy as np
 import pytest
-
 from metricslam.errors import DepthSourceError
 from metricslam.geometry import se3, sim3
 from metricslam.slam.backend_factory import make_backend
 from metricslam.slam.graph.backend import GlobalBackend
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import VoFrameHistory, relative_sim3
-from metricslam.slam.graph.synthetic import CAMERA, SimulatedVO, SyntheticDepthSource, circle_path
+from metricslam.slam.graph.synthetic import (
+    CAMERA,
+    SimulatedVO,
+    SyntheticDepthSource,
+    circle_path,
+)
 
 
 def _rigid(S: np.ndarray) -> np.ndarray:
@@ -208,7 +212,7 @@ def test_take_correction_does_not_wait_for_a_running_solve():
     for _ in range(n):
         backend.on_keyframe_marginalized(vo.next_keyframe())
     assert backend.wait_idle(30)
-    acquired = backend._lock.acquire()  # stand-in for a solve in progress  # noqa: SLF001
+    acquired = backend._lock.acquire()  # stand-in for a solve in progress
     try:
         assert acquired
         done = threading.Event()
@@ -217,5 +221,5 @@ def test_take_correction_does_not_wait_for_a_running_solve():
         t.join(timeout=10)
         assert done.is_set()  # returned while the graph lock was held
     finally:
-        backend._lock.release()  # noqa: SLF001
+        backend._lock.release()
     backend.close()

@@ -6,11 +6,14 @@ refused."""
 from __future__ import annotations
 
 import numpy as np
-
 from metricslam.geometry import sim3
 from metricslam.slam.graph.backend import GlobalBackend
 from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.graph.synthetic import SimulatedVO, SyntheticDepthSource, circle_path
+from metricslam.slam.graph.synthetic import (
+    SimulatedVO,
+    SyntheticDepthSource,
+    circle_path,
+)
 from metricslam.slam.loop import LoopCandidate
 
 N = 80

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import odometry_information, relative_sim3
@@ -60,7 +59,7 @@ def test_correct_loop_removes_drift():
 
 
 def test_false_loop_between_distant_places_is_rejected():
-    graph, vo, S_true = _drifting_circle()
+    graph, _, S_true = _drifting_circle()
     before = graph.estimates()
     # claim the far side of the circle (80 m away) is where the last keyframe is
     S_fake = sim3.inverse(S_true[0]) @ S_true[-1]  # a correct measurement...
@@ -98,15 +97,15 @@ def test_true_loop_survives_alongside_false_one():
 
 def test_rebuild_from_batch_keeps_the_solution_and_the_loops():
     """The recovery path after a failed incremental step (ill-conditioned update)."""
-    graph, vo, S_true = _drifting_circle()
+    graph, _, S_true = _drifting_circle()
     S_ok = sim3.inverse(S_true[0]) @ S_true[-1]
     assert graph.add_loop(0, N - 1, S_ok, _loop_sigmas(S_ok)).accepted
     graph.solve()
     before = graph.estimates()
-    graph._rebuild()  # noqa: SLF001 -- what solve() does when ISAM2 throws
+    graph._rebuild()
     after = graph.estimates()
     assert max(np.abs(after[k] - before[k]).max() for k in range(N)) < 0.05
-    assert graph.n_loops == 1 and len(graph._loop_indices) == 1  # noqa: SLF001
+    assert graph.n_loops == 1 and len(graph._loop_indices) == 1
     # incremental updates continue on the rebuilt ISAM2
     S_fake = S_ok
     graph.add_loop(N // 2, N - 2, S_fake, _loop_sigmas(S_fake), gate=False)

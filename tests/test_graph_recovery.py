@@ -5,7 +5,6 @@ when an update does fail (it must not leave ISAM2 half-updated: "key already exi
 from __future__ import annotations
 
 import numpy as np
-
 from metricslam.geometry import se3, sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import odometry_information, relative_sim3

@@ -7,21 +7,24 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
 from metricslam.slam.graph.odometry import odometry_information, relative_sim3
 from metricslam.slam.graph.scale_factor import (
     log_scale_residual,
-    robust_log_scale,
     make_scale_factors,
+    robust_log_scale,
     scale_measurements,
     scale_noise,
     with_scale,
 )
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
-from metricslam.slam.graph.synthetic import SimulatedVO, SyntheticDepthSource, circle_path
+from metricslam.slam.graph.synthetic import (
+    SimulatedVO,
+    SyntheticDepthSource,
+    circle_path,
+)
 
 finite = st.floats(-2.0, 2.0, allow_nan=False)
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from metricslam.geometry import se3, sim3
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import LoopDetector

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from metricslam.geometry import se3, sim3, so3
 from metricslam.slam.graph.synthetic import CAMERA
 from metricslam.slam.loop.geometric_sim3 import UNIT_SIGMA_LOG, measure_loop
@@ -45,7 +44,7 @@ def test_unit_ratio_and_motion_whatever_the_guess(seed, log_ratio, guess_bias):
     guess = T[:3, 3] / m_old * guess_bias  # e.g. the network's units, off by guess_bias
     res = measure_loop(T[:3, :3], guess, uv_new, p_old, p_new, CAMERA, sigma_rot_rad=0.01)
     assert res is not None
-    R, t, s = sim3.split(res.S_old_new)
+    _, t, s = sim3.split(res.S_old_new)
     assert s == pytest.approx(m_new / m_old, rel=0.05)
     assert np.linalg.norm(t * m_old - T[:3, 3]) < 0.15
     assert res.n_scale >= 5 and res.n_translation >= 6

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from metricslam.geometry import se3
 from metricslam.geometry.align import align_trajectory
 

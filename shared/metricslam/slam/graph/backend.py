@@ -33,7 +33,6 @@ from metricslam.errors import GraphError, MetricSlamError
 from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
 from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.graph.records import KeyframeRecord, LoopRecord
 from metricslam.slam.graph.odometry import (
     VoFrameHistory,
     odometry_information,
@@ -41,6 +40,7 @@ from metricslam.slam.graph.odometry import (
     relative_sim3,
     resolve_epoch,
 )
+from metricslam.slam.graph.records import KeyframeRecord, LoopRecord
 from metricslam.slam.graph.scale_factor import scale_measurements
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
 from metricslam.slam.types import MarginalizedKeyframe
@@ -251,7 +251,7 @@ class GlobalBackend:
             self._stats["depth_failures"] += 1
             log.warning("no scale factors for keyframe %d: %s", kf_id, exc)
             return None, None
-        except Exception as exc:  # a foreign source must never kill the worker
+        except Exception as exc:  # noqa: BLE001 -- a foreign source must never kill the worker
             self._stats["depth_failures"] += 1
             log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf_id, exc)
             return None, None

@@ -116,7 +116,7 @@ class GraphConfig(BaseModel):
     loop: LoopConfig = LoopConfig()
 
     @classmethod
-    def preset(cls, name: str) -> "GraphConfig":
+    def preset(cls, name: str) -> GraphConfig:
         """Per-dataset presets: ``"kitti"`` (car, 10 Hz), ``"synthetic"``, ``"default"``."""
         from metricslam.errors import ConfigError
 

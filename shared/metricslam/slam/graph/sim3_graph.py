@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 
 from metricslam.errors import GraphError
-from metricslam.slam.graph import scale_factor
+from metricslam.slam.graph import batch_solve, scale_factor
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
 
@@ -28,8 +28,6 @@ log = logging.getLogger(__name__)
 
 #: chi-square gate (7 dof) on a loop's innovation against the predicted relative-pose covariance.
 LOOP_GATE_CHI2 = 200.0
-#: sigmas ``[ω, u, λ]`` of the weak prior that makes an indeterminate keyframe solvable again.
-STABILIZER_SIGMAS = np.array([0.1] * 3 + [100.0] * 3 + [1.0])
 #: sigma of the gauge prior on the first keyframe: firm, but not so firm that Cholesky on
 #: 1e12-vs-1e2 information becomes indeterminate.
 ANCHOR_SIGMA = 1e-3
@@ -265,11 +263,9 @@ class GlobalPoseGraph:
         """Batch Levenberg-Marquardt on every factor (ISAM2's, only those committed before a
         failed update, and the pending ones), then a fresh ISAM2 seeded with the result.
 
-        If the fresh ISAM2 still finds the system indeterminate near a keyframe (LM's damping
-        hides what plain Cholesky cannot factor), that keyframe gets a weak prior at its solved
-        pose (:data:`STABILIZER_SIGMAS`, counted in ``n_stabilized``) and the rebuild is retried;
-        a state that cannot be rebuilt at all raises :class:`GraphError` and leaves this graph
-        as it was before the call (pending factors kept)."""
+        Indeterminate keyframes get weak priors (:func:`.batch_solve.solve_batch`, counted in
+        ``n_stabilized``); a state that cannot be rebuilt at all raises :class:`GraphError` and
+        leaves this graph as it was before the call (pending factors kept)."""
         old_factors = self._isam.getFactorsUnsafe()
         n_old = old_factors.size() if self._corrupt_at is None else min(self._corrupt_at, old_factors.size())
         graph, kinds = gtsam.NonlinearFactorGraph(), []
@@ -286,37 +282,10 @@ class GlobalPoseGraph:
         for kf in self._keyframes:
             k = key(kf)
             values.insert(k, theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf])
-        last_exc: Exception | None = None
-        result = None
-        stabilized: set[int] = set()
-        for _ in range(4):
-            try:
-                values = gtsam.LevenbergMarquardtOptimizer(graph, values, self._lm_params()).optimize()
-                isam = gtsam.ISAM2(self._params)
-                result = isam.update(graph, values)
-                break
-            except RuntimeError as exc:
-                last_exc = exc
-                near = _indeterminate_keyframe(exc)
-                if near is None:
-                    break
-                # gtsam names the variable being eliminated, maybe a neighbour of the culprit;
-                # the culprit is new (the committed graph was solvable): stabilize the new
-                # keyframes and the named one, then its neighbours too
-                todo = [*self._uncommitted, near] if not stabilized else [near - 1, near, near + 1]
-                todo = [k for k in dict.fromkeys(todo) if k not in stabilized and values.exists(key(k))]
-                if not todo:
-                    break
-                log.warning("global graph indeterminate near keyframe %d; weak prior on %s", near, todo)
-                for kf in todo:
-                    graph.add(gtsam.PriorFactorSimilarity3(key(kf), values.atSimilarity3(key(kf)),
-                                                           gtsam.noiseModel.Diagonal.Sigmas(STABILIZER_SIGMAS)))
-                    kinds.append("stabilizer")
-                    stabilized.add(kf)
-                    self.n_stabilized += 1
-        if result is None:
-            raise GraphError(f"global graph could not be solved even in batch ({last_exc}); a keyframe is "
-                             "probably unconstrained") from last_exc
+        isam, result, values, stabilized = batch_solve.solve_batch(
+            graph, values, self._params, self.config.factorization, self._uncommitted)
+        kinds.extend(["stabilizer"] * len(stabilized))
+        self.n_stabilized += len(stabilized)
         self._isam, self._corrupt_at, self._uncommitted = isam, None, []
         self._factor_kinds, self._loop_indices = {}, {}
         for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
@@ -325,11 +294,6 @@ class GlobalPoseGraph:
                 self._loop_indices[idx] = kind[1:]
         for kf in self._keyframes:
             self._latest[kf] = values.atSimilarity3(key(kf))
-
-    def _lm_params(self) -> gtsam.LevenbergMarquardtParams:
-        lm = gtsam.LevenbergMarquardtParams()
-        lm.setLinearSolverType("MULTIFRONTAL_QR" if self.config.factorization == "QR" else "MULTIFRONTAL_CHOLESKY")
-        return lm
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
         """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
@@ -408,10 +372,3 @@ class GlobalPoseGraph:
     def n_loops(self) -> int:
         return self.n_loops_accepted
 
-
-def _indeterminate_keyframe(exc: Exception) -> int | None:
-    """Keyframe id named in gtsam's IndeterminateLinearSystem message ("Symbol: s913"), or None."""
-    import re
-
-    m = re.search(r"Symbol: s(\d+)", str(exc))
-    return int(m.group(1)) if m else None

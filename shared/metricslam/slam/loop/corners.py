@@ -177,7 +177,7 @@ def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCame
     s_old_new = float(np.exp(np.median(np.log(d_old / d_new))))
     if not np.isfinite(s_old_new) or s_old_new <= 0:
         return None
-    return VerifiedLoop(sim3.from_rts(R_old_new, t_old_new, s_old_new), int(len(pairs)), int(len(inl)))
+    return VerifiedLoop(sim3.from_rts(R_old_new, t_old_new, s_old_new), len(pairs), len(inl))
 
 
 def _geometric(new: CornerFeatures, old: CornerFeatures, pairs: np.ndarray, inl: np.ndarray,
@@ -202,4 +202,4 @@ def _geometric(new: CornerFeatures, old: CornerFeatures, pairs: np.ndarray, inl:
                        min_scale_points=config.min_geometric_scale_points)
     if res is None:
         return None
-    return VerifiedLoop(res.S_old_new, int(len(pairs)), int(len(inl)), res.sigmas)
+    return VerifiedLoop(res.S_old_new, len(pairs), len(inl), res.sigmas)

@@ -23,7 +23,11 @@ from metricslam.depth.model import to_gray_u8
 from metricslam.depth.sample import sample_map
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import corners as corner_mod
-from metricslam.slam.loop.verification import LandmarkFeatures, landmark_features, verify
+from metricslam.slam.loop.verification import (
+    LandmarkFeatures,
+    landmark_features,
+    verify,
+)
 from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
 
 

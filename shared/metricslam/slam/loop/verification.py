@@ -135,4 +135,4 @@ def verify(new: LandmarkFeatures, old: LandmarkFeatures, camera: PinholeCamera, 
     n_inl = int(inl.sum())
     if n_inl < config.min_inliers or n_inl < config.min_inlier_ratio * len(pairs):
         return None
-    return VerifiedLoop(S, int(len(pairs)), n_inl)
+    return VerifiedLoop(S, len(pairs), n_inl)

@@ -42,7 +42,7 @@ class BinaryVocabulary:
 
     @classmethod
     def train(cls, descriptor_sets: list[np.ndarray], k: int, iterations: int = 8,
-              seed: int = 0) -> "BinaryVocabulary":
+              seed: int = 0) -> BinaryVocabulary:
         """k-majority clustering of all descriptors; IDF from the per-image document counts."""
         sets = [d for d in descriptor_sets if d is not None and len(d)]
         if not sets:
