@@ -53,6 +53,9 @@ class VOConfig(BaseModel):
     # --- tracking / loss ---
     min_tracked_landmarks: int = Field(20, ge=6, description="fewer pose inliers means LOST")
     pose_iterations: int = Field(8, ge=1, description="motion-only Gauss-Newton iterations")
+    pose_collapse_ratio: float = Field(
+        0.5, ge=0, le=1, description="pose inliers below this share of the previous frame's: the "
+        "motion prediction was off (e.g. a sudden turn), also try PnP-RANSAC and keep the better")
 
     # --- window BA ---
     window_size: int = Field(10, ge=3, description="keyframes kept in the sliding window")

@@ -88,6 +88,7 @@ class LocalVO:
         self._kf_track_ids = np.zeros(0, dtype=np.int64)
         self._kf_track_uv = np.zeros((0, 2))
         self._frames_since_kf = 0
+        self._last_pose_inliers = 0  # pose inliers of the previous tracked frame
         self._anchors: list[Anchor] = []
         self._C_pending = np.eye(4)
         if config.blas_threads is not None:
@@ -315,7 +316,8 @@ class LocalVO:
             mask, p_world = self.map.points_world(tracks.ids, self.window.poses_by_kf())
         T_world_cam, inl = estimate_pose(T_pred, p_world, tracks.uv_px[mask], self.camera.K,
                                          cfg.huber_px, cfg.pose_iterations)
-        if int(inl.sum()) < cfg.min_tracked_landmarks:  # sudden motion: try without the prediction
+        collapsed = int(inl.sum()) < cfg.pose_collapse_ratio * self._last_pose_inliers
+        if int(inl.sum()) < cfg.min_tracked_landmarks or collapsed:  # sudden motion: no prediction
             found = relocalize_pnp(p_world, tracks.uv_px[mask], self.camera.K, cfg.huber_px,
                                    cfg.pose_iterations)
             if found is not None and int(found[1].sum()) > int(inl.sum()):
@@ -327,6 +329,7 @@ class LocalVO:
             log.info("frame %d: %d pose inliers < %d: tracking lost", frame.index, int(inl.sum()),
                      cfg.min_tracked_landmarks)
             return self._lose(frame)
+        self._last_pose_inliers = int(inl.sum())
         self.frontend.drop(tracks.ids[mask][~inl])
         C = self._take_correction()  # a solve finished while this frame was tracked
         if C is not None:
