@@ -74,7 +74,7 @@ def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, p
 
     seq = open_sequence(seq_dir)
     backend = make_backend(seq.camera, use_scale=not no_scale,
-                           config=GraphConfig(loop=LoopConfig(enabled=False)))
+                           config=GraphConfig(loop=LoopConfig(enabled=False), depth_queue_size=256))
     pipe = SlamPipeline(seq.camera, VOConfig.preset(preset or "kitti"), backend=backend)
     t0 = time.perf_counter()
     try:

@@ -37,7 +37,7 @@ from metricslam.slam.types import MarginalizedKeyframe
 log = logging.getLogger(__name__)
 
 #: pending keyframes waiting for their depth map; older ones (dropped requests) are forgotten
-_MAX_PENDING = 64
+_MAX_PENDING = 512
 
 
 class ScaleHistory:
