@@ -105,8 +105,8 @@ def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_
         f"Command: `.venv/bin/python bench/zenoh_latency.py {' '.join(sys.argv[1:])}`  ",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
-        "**Shared with six other engineers' jobs while measured (load average "
-        f"{os.getloadavg()[0]:.1f} at the end)**: absolute numbers are pessimistic and noisy.  ",
+        f"Load average {os.getloadavg()[0]:.1f} at the end (the machine may be shared: compare "
+        "runs only at similar loads).  ",
         f"Input: `{args.seq}`, {n_frames} frames of {shape[1]}x{shape[0]} gray, published from one "
         "process through a zenoh router process to the SLAM service process (all loopback TCP).",
         "Latency = `put` of the frame -> arrival of its pose at the publisher process (same clock).",
