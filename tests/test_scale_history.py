@@ -77,10 +77,12 @@ def test_run_json_records_the_metric_scale(drive, tmp_path):
     _check_consistent(stats)
     hist = stats["scale_history"]
     measured = [r for r in hist if r["scale_factors"]]
-    # every answered depth request (and only those) left its measurements; under load some
-    # requests are dropped, so only a third of the keyframes are required to have them
+    # every answered depth request (and only those) left its measurements; offline runs wait for
+    # depth (--depth-queue) instead of dropping requests, so results do not depend on load: every
+    # keyframe but the last one or two (too few landmarks left) has its measurements
     backend = stats["backend"]
-    assert len(hist) / 3 <= len(measured) <= backend["depth_requests"] - backend["depth_failures"]
+    assert backend["depth_dropped"] == 0
+    assert len(hist) - 2 <= len(measured) <= backend["depth_requests"] - backend["depth_failures"]
     assert all(r["scale_measured_median"] > 0 for r in measured)
     assert all(r["scale_factors"] == 0 or r["scale_measured_median"] is not None for r in hist)
     true = _true_m_per_vo0(hist, drive / "poses" / "00.txt")
