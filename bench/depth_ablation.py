@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     from metricslam_train.export import export_checkpoint
 
     ns = argparse.Namespace(frame_step=args.frame_step, min_depth_m=1.0, max_depth_m=80.0, camera_height_m=1.65,
-                            texture_min=40.0)
+                            texture_min=40.0, slam_min_depth_m=10.0)
     data = Path(args.data)
     results, rows = {}, []
     with tempfile.TemporaryDirectory() as tmp:
