@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import describe
+from machine import describe, write_results
 from metricslam.errors import AlignmentError
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
@@ -156,7 +156,7 @@ def _why(ev: dict, fallback: str) -> str:
     return why.splitlines()[-1][:160] if why else "?"
 
 
-def write_markdown(report: dict, out_md: Path) -> None:
+def render_markdown(report: dict) -> str:
     n_rep = report.get("repeats", 1)
     head = ("| t_rel % | r_rel °/100 m | ATE SE(3) m | ATE Sim(3) m | scale ratio | scale err % |")
     lines = ["# Table 1 — accuracy: metricslam vs --no-scale (same run)", "",
@@ -219,7 +219,7 @@ def write_markdown(report: dict, out_md: Path) -> None:
                              f"{st.get('tracking_losses', '—')} tracking losses"
                              + (f", FAILED: {r['error'].splitlines()[-1][:200]}" if "error" in r else ""))
     lines += ["", "## Notes", ""] + [f"* {n}" for n in report["notes"]]
-    out_md.write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def run_sequence(name: str, seq_dir: str, gt: str, workdir: Path, repeat: int | None) -> dict:
@@ -309,9 +309,7 @@ def main(argv: list[str] | None = None) -> int:
             v: summarize([r[v]["result"] for r in reps if "result" in r.get(v, {})])
             for v in VARIANTS}
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1, default=str) + "\n")
-    write_markdown(report, out.with_suffix(".md"))
+    write_results(out, report, render_markdown(report))
     print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")
     return 0
 

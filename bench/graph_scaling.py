@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
-from pathlib import Path
 
 import gtsam
 import numpy as np
 
+from machine import describe, write_results
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.backend import GlobalBackend
@@ -106,14 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(r), flush=True)
         rows.append(r)
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
-        out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
-                                                        "command": " ".join(sys.argv)}, indent=2))
+        machine = describe()
         lines = [
             "# Global graph solve time vs keyframes", "",
-            f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine} (shared with other jobs)", "",
+            f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}", "",
             f"Each keyframe: 1 odometry factor + {cfg.max_scale_landmarks} landmark scale measurements "
             f"(scale_factor_mode={cfg.scale_factor_mode}), one ISAM2 update (relinearize every "
             f"{cfg.relinearize_skip}). Update = everything the back end does per keyframe in the graph.",
@@ -128,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
                          f"{r['loop_gate_ms']:.0f} | {r['loop_solve_ms']:.0f} | "
                          f"{r['end_error_m_before_loop']:.1f} → {r['end_error_m_after_loop']:.2f} | {b} | "
                          f"{r['scale_error_pct_max']:.1f} |")
-        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
+                      "\n".join(lines) + "\n")
     return 0
 
 

@@ -1,7 +1,8 @@
-"""One-line description of the machine a benchmark ran on (every results file records it)."""
+"""What every benchmark results file shares: the machine it ran on, and how OUT.json / OUT.md are written."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 from pathlib import Path
@@ -32,3 +33,11 @@ def describe() -> str:
         load = "unknown"
     return (f"{cpu}, {os.cpu_count()} cores, {mem}, {platform.platform()}, Python "
             f"{platform.python_version()}, numpy {np.__version__}; load average {load}")
+
+
+def write_results(out: str | Path, payload: dict, markdown: str) -> None:
+    """Write ``OUT.json`` (``payload``; non-JSON values as strings) and ``OUT.md`` beside it."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(payload, indent=1, default=str) + "\n")
+    out.with_suffix(".md").write_text(markdown)

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from machine import describe, write_results
 
 METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
 
@@ -128,7 +128,7 @@ def render(rows: list[dict], commands: list[str], machine: str) -> str:
     """Markdown table of :func:`run_one` rows (also used by ``--render`` on saved JSON)."""
     lines = ["# Metric SLAM: learned scale vs --no-scale", "",
              *(f"Command: `.venv/bin/python {c}`  " for c in commands),
-             f"Machine: {machine} (2 cores shared with other jobs while measured)", "",
+             f"Machine: {machine}", "",
              "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | r_rel °/100 m | end err Sim(3) m | fps | keyframes | scale factors | loops verified / accepted (true) | accepted loops (frames) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
@@ -165,10 +165,8 @@ def render_saved(json_paths: list[str], out: Path) -> None:
                 gt = next(g for n, g in gts.items() if r["name"].startswith(n + "_"))
                 r["loops_true"] = loop_truth(r["stats"].get("backend", r["stats"]).get("loops", []), gt)
             rows.append(r)
-    text = render(rows, commands, machine)
-    out.with_suffix(".md").write_text(text)
-    out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine, "commands": commands},
-                                                   indent=2, default=str))
+    write_results(out, {"rows": rows, "machine": machine, "commands": commands},
+                  render(rows, commands, machine))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,12 +202,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps({k: v for k, v in r.items() if k != "stats"}, default=str)[:2000], flush=True)
                 rows.append(r)
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
-        out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
-                                                        "command": " ".join(sys.argv)}, indent=2, default=str))
-        out.with_suffix(".md").write_text(render(rows, [" ".join(sys.argv)], machine))
+        machine = describe()
+        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
+                      render(rows, [" ".join(sys.argv)], machine))
     return 0
 
 

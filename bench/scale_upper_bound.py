@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -29,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.backend_factory import make_backend
 from metricslam.slam.pipeline import SlamPipeline
@@ -99,13 +98,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"name": name, "scale_error_pct": m["scale_error_pct"], "ate_rmse_m": m["ate_rmse_m"],
                           "t_rel_pct": m["t_rel_pct"]}), flush=True)
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
-        out.with_suffix(".json").write_text(json.dumps({"rows": rows, "machine": machine,
-                                                        "command": " ".join(sys.argv)}, indent=2, default=str))
+        machine = describe()
         lines = ["# Upper bound: the same SLAM with stereo (SGBM) depth instead of the network", "",
-                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine} (shared)", "",
+                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}", "",
                  "| run | path m | scale err % | ATE SE(3) m | ATE % path | ATE Sim(3) m | t_rel % |",
                  "| --- | --- | --- | --- | --- | --- | --- |"]
         for r in rows:
@@ -113,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {r['name']} (stereo depth) | {m['path_length_m']:.0f} | {m['scale_error_pct']:.2f} | "
                          f"{m['ate_rmse_m']:.2f} | {100 * m['ate_rmse_m'] / m['path_length_m']:.2f} | "
                          f"{m['ate_rmse_sim3_m']:.2f} | {m['t_rel_pct']:.2f} |")
-        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
+                      "\n".join(lines) + "\n")
     return 0
 
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 from accuracy import METRICSLAM, code_description
-from machine import describe
+from machine import describe, write_results
 
 MODES = {"metric": [], "no-scale": ["--no-scale"], "vo-only": ["--vo-only"]}
 #: (key in ms_per_frame / ms_per_call, label)
@@ -78,7 +78,7 @@ def _f(x, fmt: str = ".1f") -> str:
     return "—" if x is None else format(x, fmt)
 
 
-def write_markdown(report: dict, out_md: Path) -> None:
+def render_markdown(report: dict) -> str:
     rows = [r for r in report["runs"] if "error" not in r]
     modes = [r["mode"] for r in rows]
     hdr = "| " + " | ".join(modes) + " |"
@@ -114,7 +114,7 @@ def write_markdown(report: dict, out_md: Path) -> None:
     lines += ["", "Per-mode commands:", ""] + [f"* {r['mode']}: `{r['command']}`" for r in report["runs"]]
     lines += [f"* {r['mode']} FAILED: {r['error'][-300:]!r}" for r in report["runs"] if "error" in r]
     lines += ["", "## Notes", "", *[f"* {x}" for x in report["notes"]]]
-    out_md.write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,9 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         "(BA and marginalization run once per keyframe). The back end (depth + global solve) "
         "runs in its own thread, so its time overlaps the VO's.")
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1, default=str) + "\n")
-    write_markdown(report, out.with_suffix(".md"))
+    write_results(out, report, render_markdown(report))
     print(f"wrote {out.with_suffix('.md')}")
     return 0
 
