@@ -31,3 +31,22 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def synth_sequence(tmp_path_factory):
+    """Factory of rendered ``metricslam synth`` sequences, each rendered once per session:
+    ``synth_sequence(frames, seed=3, path="loop", size=(620, 188)) -> Path`` (KITTI layout)."""
+    from metricslam.synth.scene import generate_sequence
+
+    made: dict[tuple, Path] = {}
+
+    def make(frames: int, seed: int = 3, path: str = "loop", size: tuple[int, int] = (620, 188)) -> Path:
+        key = (frames, seed, path, tuple(size))
+        if key not in made:
+            out = tmp_path_factory.mktemp(f"synth_{path}_{frames}_s{seed}")
+            generate_sequence(out, frames, seed=seed, size=size, path=path)
+            made[key] = out
+        return made[key]
+
+    return make

@@ -20,12 +20,8 @@ FRAMES = 150
 
 
 @pytest.fixture(scope="module")
-def rendered_loop(tmp_path_factory):
-    from metricslam.synth.scene import generate_sequence
-
-    out = tmp_path_factory.mktemp("loop_seq")
-    generate_sequence(out, FRAMES, seed=3, size=(620, 188), path="loop")
-    return out
+def rendered_loop(synth_sequence):
+    return synth_sequence(FRAMES, seed=3, path="loop")
 
 
 def _run(seq_dir, use_scale: bool):

@@ -25,12 +25,8 @@ FRAMES = 70
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    from metricslam.synth.scene import generate_sequence
-
-    out = tmp_path_factory.mktemp("scale_seq")
-    generate_sequence(out, FRAMES, seed=3, size=(620, 188), path="loop")
-    return out
+def drive(synth_sequence):
+    return synth_sequence(FRAMES, seed=3, path="loop")
 
 
 def _true_m_per_vo0(history: list[dict], gt_path) -> float:
