@@ -6,6 +6,7 @@ import threading
 
 import numpy as np
 import pytest
+from graph_chain import run_backend
 from metricslam.errors import DepthSourceError
 from metricslam.geometry import se3, sim3
 from metricslam.slam.backend_factory import make_backend
@@ -58,14 +59,7 @@ def test_corrections_make_vo_metric_and_keyframe_scales_consistent(inline):
     vo = SimulatedVO(T, drift_per_kf=0.01, sigma0=3.0, seed=2)
     # a queue as long as the run: no request is dropped even though keyframes come in a burst
     backend = GlobalBackend(GraphConfig(inline=inline, depth_queue_size=n), depth_source=SyntheticDepthSource(n))
-    scales_applied = []
-    for _ in range(n):
-        backend.on_keyframe_marginalized(vo.next_keyframe())
-        S = backend.take_correction()
-        if S is not None:
-            scales_applied.append(sim3.scale(S))
-            vo.apply_similarity(S)
-    backend.close()
+    scales_applied = [sim3.scale(S) for S in run_backend(backend, vo, n)]
     vo.apply_similarity(backend.take_correction())  # the final solve's warp
     assert backend.scale_established
     assert max(scales_applied) > 2.5  # the first corrections changed the VO's units a lot
@@ -124,12 +118,7 @@ def test_failing_depth_source_degrades_to_no_scale():
     src = _FailingSource()
     backend = GlobalBackend(GraphConfig(inline=False), depth_source=src)
     vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1)
-    for _ in range(n):
-        backend.on_keyframe_marginalized(vo.next_keyframe())
-        S = backend.take_correction()
-        if S is not None:
-            vo.apply_similarity(S)
-    backend.close()
+    run_backend(backend, vo, n)
     st = backend.stats()
     assert st["keyframes"] == n and st["scale_factors"] == 0 and st["depth_failures"] == src.calls > 0
     assert len(backend.optimized_keyframe_poses()) == n
@@ -140,12 +129,7 @@ def test_no_scale_backend_never_touches_depth():
     src = _FailingSource()
     backend = make_backend(CAMERA, use_scale=False, depth_source=src, config=GraphConfig(inline=True))
     vo = SimulatedVO(circle_path(n, 30.0, turns=0.3), seed=1, sigma0=2.0)
-    for _ in range(n):
-        backend.on_keyframe_marginalized(vo.next_keyframe())
-        S = backend.take_correction()
-        if S is not None:
-            vo.apply_similarity(S)
-    backend.close()
+    run_backend(backend, vo, n)
     assert src.calls == 0 and backend.depth_source is None
     assert not backend.scale_established and backend.stats()["scale_factors"] == 0
     est = backend.optimized_keyframe_poses()

@@ -6,6 +6,7 @@ refused."""
 from __future__ import annotations
 
 import numpy as np
+from graph_chain import run_backend
 from metricslam.geometry import sim3
 from metricslam.slam.graph.backend import GlobalBackend
 from metricslam.slam.graph.config import GraphConfig
@@ -40,12 +41,7 @@ def _run(detector_args: tuple | None, seed: int = 3):
     det = None if detector_args is None else _InjectingDetector(vo, T, *detector_args)
     backend = GlobalBackend(GraphConfig(inline=True), depth_source=SyntheticDepthSource(N, bias=1.0),
                             loop_detector=det)
-    for _ in range(N):
-        backend.on_keyframe_marginalized(vo.next_keyframe())
-        S = backend.take_correction()
-        if S is not None:
-            vo.apply_similarity(S)
-    backend.close()
+    run_backend(backend, vo, N)
     est = backend.optimized_keyframe_poses()
     p_err = np.linalg.norm(np.array([est[k][:3, 3] for k in range(N)]) - T[:, :3, 3], axis=1)
     s_err = np.array([sim3.scale(est[k]) for k in range(N)]) / np.array(vo.sigma_at_kf) - 1

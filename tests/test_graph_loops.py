@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from graph_chain import add_odometry_keyframe
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.graph.odometry import odometry_information, relative_sim3
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
 from metricslam.slam.graph.synthetic import SimulatedVO, circle_path
 
@@ -23,12 +23,7 @@ def _drifting_circle(seed: int = 5) -> tuple[GlobalPoseGraph, SimulatedVO, np.nd
     for _ in range(N):
         kf = vo.next_keyframe()
         S_true.append(sim3.from_se3(T[kf.kf_id], vo.sigma_at_kf[-1]))
-        if prev is None:
-            graph.add_keyframe(kf.kf_id, kf.T_vo_kf)
-        else:
-            S_rel = relative_sim3(prev.T_vo_kf, kf.T_vo_kf)
-            graph.add_keyframe(kf.kf_id, graph.estimate(prev.kf_id) @ S_rel, prev.kf_id, S_rel,
-                               odometry_information(S_rel, None, cfg))
+        add_odometry_keyframe(graph, prev, kf, cfg)
         graph.solve()
         prev = kf
     return graph, vo, np.array(S_true)

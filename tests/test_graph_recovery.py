@@ -5,6 +5,7 @@ when an update does fail (it must not leave ISAM2 half-updated: "key already exi
 from __future__ import annotations
 
 import numpy as np
+from graph_chain import add_odometry_keyframe
 from metricslam.geometry import se3, sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import odometry_information, relative_sim3
@@ -12,24 +13,21 @@ from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
 from metricslam.slam.graph.synthetic import SimulatedVO, circle_path
 
 
-def _chain(n: int, cfg: GraphConfig) -> tuple[GlobalPoseGraph, list]:
-    vo = SimulatedVO(circle_path(n + 10, 40.0, 0.5), drift_per_kf=0.0, drift_noise=0.0, seed=1)
+def _chain(T_world_kf: np.ndarray, n: int, cfg: GraphConfig, extra: int = 0) -> tuple[GlobalPoseGraph, list]:
+    """The first ``n`` of ``n + extra`` drift-free simulated keyframes along ``T_world_kf`` as an
+    odometry chain, solved after each; returns the graph and all ``n + extra`` keyframes."""
+    vo = SimulatedVO(T_world_kf, drift_per_kf=0.0, drift_noise=0.0, seed=1)
     graph = GlobalPoseGraph(cfg, anchor_scale=True)
-    kfs = [vo.next_keyframe() for _ in range(n)]
-    for prev, kf in zip([None] + kfs[:-1], kfs):
-        if prev is None:
-            graph.add_keyframe(kf.kf_id, kf.T_vo_kf)
-        else:
-            S = relative_sim3(prev.T_vo_kf, kf.T_vo_kf)
-            graph.add_keyframe(kf.kf_id, graph.estimate(prev.kf_id) @ S, prev.kf_id, S,
-                               odometry_information(S, None, cfg))
+    kfs = [vo.next_keyframe() for _ in range(n + extra)]
+    for prev, kf in zip([None] + kfs[:n - 1], kfs[:n]):
+        add_odometry_keyframe(graph, prev, kf, cfg)
         graph.solve()
-    return graph, kfs + [vo.next_keyframe() for _ in range(3)]
+    return graph, kfs
 
 
 def test_indeterminate_update_is_rebuilt_and_later_updates_work():
     cfg = GraphConfig(factorization="CHOLESKY")  # QR would not even notice the free direction
-    graph, kfs = _chain(12, cfg)
+    graph, kfs = _chain(circle_path(22, 40.0, 0.5), 12, cfg, extra=3)
     before = graph.estimates()
     prev, bad = kfs[11], kfs[12]
     S = relative_sim3(prev.T_vo_kf, bad.T_vo_kf)
@@ -52,19 +50,7 @@ def test_indeterminate_update_is_rebuilt_and_later_updates_work():
 
 def _straight_chain(n: int, cfg: GraphConfig) -> GlobalPoseGraph:
     T = np.array([se3.from_rt(np.eye(3), np.array([0.0, 0.0, 3.0 * i])) for i in range(n)])
-    vo = SimulatedVO(T, drift_per_kf=0.0, drift_noise=0.0, seed=1)
-    graph, prev = GlobalPoseGraph(cfg, anchor_scale=True), None
-    for _ in range(n):
-        kf = vo.next_keyframe()
-        if prev is None:
-            graph.add_keyframe(kf.kf_id, kf.T_vo_kf)
-        else:
-            S = relative_sim3(prev.T_vo_kf, kf.T_vo_kf)
-            graph.add_keyframe(kf.kf_id, graph.estimate(prev.kf_id) @ S, prev.kf_id, S,
-                               odometry_information(S, None, cfg))
-        graph.solve()
-        prev = kf
-    return graph
+    return _chain(T, n, cfg)[0]
 
 
 def test_long_loop_free_chain_is_not_indeterminate():

@@ -5,12 +5,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from graph_chain import add_odometry_keyframe
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
-from metricslam.slam.graph.odometry import odometry_information, relative_sim3
 from metricslam.slam.graph.scale_factor import (
     log_scale_residual,
     make_scale_factors,
@@ -98,12 +98,7 @@ def _build(n: int, with_scale_factors: bool, drift: float = 0.02,
     prev = None
     for _ in range(n):
         kf = vo.next_keyframe()
-        if prev is None:
-            graph.add_keyframe(kf.kf_id, kf.T_vo_kf)
-        else:
-            S_rel = relative_sim3(prev.T_vo_kf, kf.T_vo_kf)
-            guess = graph.estimate(prev.kf_id) @ S_rel
-            graph.add_keyframe(kf.kf_id, guess, prev.kf_id, S_rel, odometry_information(S_rel, None, cfg))
+        add_odometry_keyframe(graph, prev, kf, cfg)
         if with_scale_factors:
             z = sample_map(src.inv_depth_map(kf.image, kf.camera), kf.landmarks_uv_px,
                            (kf.camera.width_px, kf.camera.height_px))
