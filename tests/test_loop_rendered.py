@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from metricslam.geometry import se3
 from metricslam.geometry.align import align_trajectory
+from pipeline_run import run_inline
 
 FRAMES = 150
 
@@ -25,21 +26,9 @@ def rendered_loop(synth_sequence):
 
 
 def _run(seq_dir, use_scale: bool):
-    from metricslam.datasets import open_sequence
-    from metricslam.slam.backend_factory import make_backend
-    from metricslam.slam.graph.config import GraphConfig
-    from metricslam.slam.pipeline import SlamPipeline
-    from metricslam.slam.vo.config import VOConfig
     from metricslam.trajectory.io import read_kitti_poses
 
-    seq = open_sequence(seq_dir)
-    backend = make_backend(seq.camera, use_scale=use_scale, config=GraphConfig(inline=True))
-    pipe = SlamPipeline(seq.camera, VOConfig.preset("synth"), backend=backend)
-    try:
-        for i in range(len(seq)):
-            pipe.process(seq[i])
-    finally:
-        pipe.close()
+    pipe, backend = run_inline(seq_dir, use_scale)
     est = np.array([e.T_world_cam for e in pipe.trajectory()])
     gt = read_kitti_poses(seq_dir / "poses" / "00.txt")
     return backend.stats(), est, gt

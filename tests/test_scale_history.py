@@ -20,6 +20,7 @@ import pytest
 from metricslam.camera import PinholeCamera
 from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
 from metricslam.slam.types import MarginalizedKeyframe
+from pipeline_run import run_inline
 
 FRAMES = 70
 
@@ -91,20 +92,7 @@ def test_run_json_records_the_metric_scale(drive, tmp_path):
 
 
 def test_no_scale_history_shows_the_vo_scale(drive):
-    from metricslam.datasets import open_sequence
-    from metricslam.slam.backend_factory import make_backend
-    from metricslam.slam.graph.config import GraphConfig
-    from metricslam.slam.pipeline import SlamPipeline
-    from metricslam.slam.vo.config import VOConfig
-
-    seq = open_sequence(drive)
-    backend = make_backend(seq.camera, use_scale=False, config=GraphConfig(inline=True))
-    pipe = SlamPipeline(seq.camera, VOConfig.preset("synth"), backend=backend)
-    try:
-        for i in range(len(seq)):
-            pipe.process(seq[i])
-    finally:
-        pipe.close()
+    pipe, _ = run_inline(drive, use_scale=False)
     stats = {**pipe.stats(), **pipe.scale_history()}
     _check_consistent(stats)
     hist = stats["scale_history"]
