@@ -67,14 +67,15 @@ def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, p
     import numpy as np
     from metricslam.datasets import open_sequence
     from metricslam.slam.backend_factory import make_backend
-    from metricslam.slam.graph.config import GraphConfig, LoopConfig
+    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE, GraphConfig, LoopConfig
     from metricslam.slam.pipeline import SlamPipeline
     from metricslam.slam.vo.config import VOConfig
     from metricslam.trajectory.io import write_kitti_poses
 
     seq = open_sequence(seq_dir)
     backend = make_backend(seq.camera, use_scale=not no_scale,
-                           config=GraphConfig(loop=LoopConfig(enabled=False), depth_queue_size=256))
+                           config=GraphConfig(loop=LoopConfig(enabled=False),
+                                              depth_queue_size=OFFLINE_DEPTH_QUEUE_SIZE))
     pipe = SlamPipeline(seq.camera, VOConfig.preset(preset or "kitti"), backend=backend)
     t0 = time.perf_counter()
     try:

@@ -19,6 +19,7 @@ Output: ``OUT/w{seed}/`` KITTI-layout folders that ``metricslam train`` configs 
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -64,8 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                             bridges_per_km=float(rng.choice([0.0, rng.uniform(5, 30)], p=[0.5, 0.5])),
                             building_probability=float(rng.uniform(0.4, 0.95)),
                             car_probability=float(rng.uniform(0.2, 0.9)))
-        if folder.exists():
-            import shutil
+        if folder.exists():  # a world interrupted half-way: render it again
             shutil.rmtree(folder)
         generate_sequence(folder, len(sub), seed, trajectory=path_file, config=SynthConfig(world=world))
         print(f"[{i + 1}/{args.worlds}] {folder} along KITTI {name} from pose {start} "

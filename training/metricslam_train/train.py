@@ -7,6 +7,7 @@ snapshots, ``log.jsonl`` (one line per step: every loss term and the learning ra
 
 from __future__ import annotations
 
+import glob
 import json
 import logging
 import time
@@ -58,10 +59,7 @@ def expand_sequences(entry: str) -> list[Path]:
     """One ``sequences`` entry -> folders: a path, or a glob (``runs/synth_train/w*``), sorted."""
     if not any(c in entry for c in "*?["):
         return [Path(entry)]
-    base = Path(entry)
-    anchor = Path(base.anchor) if base.is_absolute() else Path(".")
-    pattern = str(base.relative_to(anchor)) if base.is_absolute() else entry
-    folders = sorted(p for p in anchor.glob(pattern) if p.is_dir())
+    folders = sorted(Path(p) for p in glob.glob(entry) if Path(p).is_dir())
     if not folders:
         raise TrainingError(f"sequences entry {entry!r} matches no folder: generate them first "
                             "(see the config's header)")

@@ -52,7 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="process only the first N frames")
     p.add_argument("--model", default=None, metavar="PATH",
                    help="ONNX depth model (default: the shipped one)")
-    p.add_argument("--depth-queue", type=int, default=256, metavar="N",
+    p.add_argument("--depth-queue", type=int, default=None, metavar="N",
                    help="keyframes that may wait for depth (default 256). Offline runs wait "
                         "instead of dropping, so results do not depend on machine load; the live "
                         "service keeps a short queue and drops the oldest")
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
     from metricslam.datasets import detect_format, open_sequence
     from metricslam.errors import ConfigError
-    from metricslam.slam.graph.config import GraphConfig
+    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE, GraphConfig
     from metricslam.slam.pipeline import SlamPipeline
     from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
     from metricslam.slam.vo.config import VOConfig
@@ -88,10 +88,11 @@ def run(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
-    if args.depth_queue < 1:
-        raise ConfigError(f"--depth-queue must be >= 1, got {args.depth_queue}")
+    depth_queue = OFFLINE_DEPTH_QUEUE_SIZE if args.depth_queue is None else args.depth_queue
+    if depth_queue < 1:
+        raise ConfigError(f"--depth-queue must be >= 1, got {depth_queue}")
     backend = None
-    history = ScaleHistory(GraphConfig(depth_queue_size=args.depth_queue))
+    history = ScaleHistory(GraphConfig(depth_queue_size=depth_queue))
     if not args.vo_only:
         try:
             from metricslam.slam.backend_factory import make_backend

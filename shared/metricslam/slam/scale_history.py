@@ -36,8 +36,9 @@ from metricslam.slam.types import MarginalizedKeyframe
 
 log = logging.getLogger(__name__)
 
-#: pending keyframes waiting for their depth map; older ones (dropped requests) are forgotten
-_MAX_PENDING = 512
+#: pending keyframes beyond the back end's depth queue (requests in flight); older pending
+#: entries belong to dropped requests and are forgotten
+_PENDING_MARGIN = 8
 
 
 class ScaleHistory:
@@ -85,7 +86,7 @@ class ScaleHistory:
                 uv = np.asarray(kf.landmarks_uv_px, dtype=float).reshape(-1, 2)
                 xi = np.asarray(kf.landmarks_inv_depth, dtype=float).reshape(-1)
                 self._pending[id(kf.image)] = (weakref.ref(kf.image), rec, uv, xi)
-                while len(self._pending) > _MAX_PENDING:
+                while len(self._pending) > self.graph_config.depth_queue_size + _PENDING_MARGIN:
                     self._pending.popitem(last=False)
 
     def on_depth(self, image: np.ndarray, inv_depth_map_per_m: np.ndarray) -> None:

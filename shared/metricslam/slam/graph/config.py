@@ -47,6 +47,13 @@ class LoopConfig(BaseModel):
     min_geometric_scale_points: int = Field(default=5, ge=2)  # both-sided (scale)
 
 
+#: depth requests an OFFLINE run lets wait (``metricslam run --depth-queue``): it waits for every
+#: keyframe's depth instead of dropping requests, so its result does not depend on machine load.
+#: The live default (``GraphConfig.depth_queue_size``) stays short: a late map is worth less
+#: there than the next frame.
+OFFLINE_DEPTH_QUEUE_SIZE = 256
+
+
 class GraphConfig(BaseModel):
     """Global Sim(3) graph parameters (paper eq. 13).
 
