@@ -270,6 +270,7 @@ class LocalVO:
             self._snapshot_kf_tracks()
             self._tracking = True
             self._T_world_last = T_world_cur
+            self._last_pose_inliers = 0  # a new segment: nothing to compare the next frame with
             self._T_last_cur = np.eye(4)
             self._T_last_cur[:3, 3] = T_ref_cur[:3, 3] / n_frames
             # frames between the two views: interpolate (they had no map to track against)
