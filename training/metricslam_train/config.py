@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -27,7 +28,11 @@ class LossConfig(BaseModel):
     sup: float = 10.0
     #: pyramid levels the loss is summed over (0 = base 256x512 … 6); D0..D2 come from D3.
     scales: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6)
-    #: Huber threshold of the supervision term, in d_frac (0.005 = 2.6 px at 512 wide).
+    #: where the supervision term compares disparities: "d_frac" (the paper's eq. 7) or "log"
+    #: (relative error; every depth range counts alike, see losses.supervision)
+    sup_space: Literal["d_frac", "log"] = "d_frac"
+    #: Huber threshold of the supervision term in ``sup_space`` units (d_frac: 0.005 = 2.6 px at
+    #: 512 wide; log: 0.05 = 5 %).
     huber_delta: float = Field(0.005, gt=0)
 
 

@@ -81,11 +81,21 @@ def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tens
     return total
 
 
-def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float) -> torch.Tensor:
-    """Eq. 7: Huber(D − B) over pixels where the block-matching target is valid (> 0)."""
+def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float, log_space: bool = False
+                ) -> torch.Tensor:
+    """Eq. 7: Huber(D − B) over pixels where the block-matching target is valid (> 0).
+
+    ``log_space`` compares ``log D`` with ``log B`` instead (``huber_delta`` then is a relative
+    error, 0.05 = 5 %): every depth counts by its *relative* error, as in the scale factors
+    (s = ξ/z, eq. 12) and in abs-rel. In d_frac space a 50 % error at 40 m weighs about as much
+    as a 4 % error at 3 m, so far depth is barely taught.
+    """
     valid = target > 0
     if not bool(valid.any()):
         return disp.sum() * 0.0
+    if log_space:
+        err = torch.log(disp[valid].clamp_min(1e-5)) - torch.log(target[valid])
+        return F.huber_loss(err, torch.zeros_like(err), delta=huber_delta) / huber_delta
     return F.huber_loss(disp[valid], target[valid], delta=huber_delta) / huber_delta
 
 
@@ -118,7 +128,7 @@ def disparity_pyramid(outputs: list[torch.Tensor], scales: tuple[int, ...], base
 def total_loss(outputs: list[torch.Tensor], left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor,
                bm_right: torch.Tensor, ratio: torch.Tensor, weights: LossWeights = LossWeights(),
                scales: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6), huber_delta: float = 0.005,
-               ) -> tuple[torch.Tensor, dict[str, float]]:
+               sup_log_space: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 3 summed over ``scales``. Returns (loss, per-term sums for logging)."""
     pyramid = disparity_pyramid(outputs, scales, left.shape[-2:])
     r = ratio.view(-1, 1, 1, 1).to(left.dtype)
@@ -135,7 +145,8 @@ def total_loss(outputs: list[torch.Tensor], left: torch.Tensor, right: torch.Ten
         sums["smooth"] = sums["smooth"] + (edge_aware_smoothness(dl, il) + edge_aware_smoothness(dr, ir)) / f
         if weights.sup > 0:
             bl, br = _down_sparse(bm_left, f), _down_sparse(bm_right, f)
-            sums["sup"] = sums["sup"] + supervision(dl_pair, bl, huber_delta) + supervision(dr_pair, br, huber_delta)
+            sums["sup"] = (sums["sup"] + supervision(dl_pair, bl, huber_delta, sup_log_space)
+                           + supervision(dr_pair, br, huber_delta, sup_log_space))
     loss = (weights.photo * sums["photo"] + weights.lr * sums["lr"] + weights.smooth * sums["smooth"]
             + weights.sup * sums["sup"])
     return loss, {t: float(v.detach()) for t, v in sums.items()}

@@ -151,12 +151,12 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             t0 = time.perf_counter()
             outputs = net((left - cfg.norm_mean) / cfg.norm_std)
             loss, terms = total_loss(outputs, left, right, bm_l, bm_r, ratio, weights, cfg.loss.scales,
-                                     cfg.loss.huber_delta)
+                                     cfg.loss.huber_delta, cfg.loss.sup_space == "log")
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
             step += 1
-            record = {"step": step, "loss": float(loss.detach()), **terms, "lr": lr,
+            record = {"step": step, "loss": float(loss.detach()), **terms, "learning_rate": lr,
                       "d3_mean": float(outputs[0][:, 0].mean().detach()), "s": round(time.perf_counter() - t0, 4)}
             log_file.write(json.dumps(record) + "\n")
             bar.update(1)
