@@ -60,10 +60,34 @@ def predict_at(model: DepthModel, image: np.ndarray, fx_px: float, uv_px: np.nda
     return np.clip(1.0 / np.maximum(inv_at, 1.0 / max_depth_m), 1e-3, max_depth_m)
 
 
+def l3_oracle_depth(true_m: np.ndarray, uv_px: np.ndarray, image_size: tuple[int, int],
+                    grid_hw: tuple[int, int], max_depth_m: float) -> np.ndarray:
+    """The reference's own depth seen through the network's output grid: the mean reference
+    inverse depth of each (h, w) cell (empty cells: the nearest filled one), sampled back with
+    the same bilinear :func:`sample_map`. An upper bound for ANY model with this output size —
+    what remains is the error of a coarse map at depth edges — not a competitor (it uses the truth).
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    h, w = grid_hw
+    width_px, height_px = image_size
+    col = np.clip((uv_px[:, 0] * w / width_px).astype(int), 0, w - 1)
+    row = np.clip((uv_px[:, 1] * h / height_px).astype(int), 0, h - 1)
+    total, count = np.zeros((h, w)), np.zeros((h, w))
+    np.add.at(total, (row, col), 1.0 / true_m)
+    np.add.at(count, (row, col), 1.0)
+    grid = np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    _, (ri, ci) = distance_transform_edt(count == 0, return_indices=True)
+    grid = grid[ri, ci]
+    inv_at = sample_map(grid, uv_px, image_size)
+    return np.clip(1.0 / np.maximum(inv_at, 1.0 / max_depth_m), 1e-3, max_depth_m)
+
+
 def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
     seq = KittiRawDepth(folder)
     cam = seq.camera
-    preds, flats, trues, per_frame = [], [], [], []
+    preds, flats, oracles, trues, per_frame = [], [], [], [], []
+    grid_hw = (model.contract.output_height, model.contract.output_width)
     for i in range(0, len(seq), args.frame_step):
         frame = seq[i]
         if frame.depth_m is None:
@@ -73,11 +97,13 @@ def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
         uv = np.stack([u, v], 1).astype(np.float64)
         pred = predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m)
         flat = flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m)
+        size = (frame.image.shape[1], frame.image.shape[0])
+        oracles.append(l3_oracle_depth(true, uv, size, grid_hw, args.max_depth_m))
         preds.append(pred), flats.append(flat), trues.append(true)
         per_frame.append(float(np.median(pred / true)))
-    pred, flat, true = (np.concatenate(x) for x in (preds, flats, trues))
+    pred, flat, oracle, true = (np.concatenate(x) for x in (preds, flats, oracles, trues))
     return {"frames": len(per_frame), "model": metrics(pred, true), "flat_road": metrics(flat, true),
-            **slam_range(pred, flat, true, args.slam_min_depth_m),
+            "l3_oracle": metrics(oracle, true), **slam_range(pred, flat, true, args.slam_min_depth_m),
             "per_frame_median_ratio": {"mean": float(np.mean(per_frame)), "std": float(np.std(per_frame))}}
 
 
@@ -107,7 +133,8 @@ def sgbm_depth(left: np.ndarray, right: np.ndarray, fx_px: float, baseline_m: fl
 def evaluate_stereo(model: DepthModel, seq_dir: Path, args) -> dict:
     seq = KittiOdometry(seq_dir)
     cam = seq.camera
-    preds, flats, trues = [], [], []
+    preds, flats, oracles, trues = [], [], [], []
+    grid_hw = (model.contract.output_height, model.contract.output_width)
     for i in range(0, len(seq), args.frame_step):
         frame = seq[i]
         ref = sgbm_depth(frame.image, frame.image_right, cam.fx_px, frame.baseline_m, args.texture_min)
@@ -116,16 +143,18 @@ def evaluate_stereo(model: DepthModel, seq_dir: Path, args) -> dict:
         uv = np.stack([u, v], 1).astype(np.float64)
         preds.append(predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m))
         flats.append(flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m))
+        oracles.append(l3_oracle_depth(true, uv, (ref.shape[1], ref.shape[0]), grid_hw, args.max_depth_m))
         trues.append(true)
-    pred, flat, true = (np.concatenate(x) for x in (preds, flats, trues))
+    pred, flat, oracle, true = (np.concatenate(x) for x in (preds, flats, oracles, trues))
     return {"sequence": seq_dir.name, "frames": len(preds), "model": metrics(pred, true),
-            "flat_road": metrics(flat, true), **slam_range(pred, flat, true, args.slam_min_depth_m)}
+            "flat_road": metrics(flat, true), "l3_oracle": metrics(oracle, true), **slam_range(pred, flat, true, args.slam_min_depth_m)}
 
 
 def _table(rows: list[tuple[str, dict]], slam_min_depth_m: float) -> str:
     lines = ["| set | method | median pred/true | abs-rel | RMSE (m) | δ<1.25 | pixels |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
     labels = {"model": "model", "flat_road": "flat_road",
+              "l3_oracle": "L3 oracle: the reference itself on the 32x64 output grid (bound for any L3 model)",
               "model_far": f"model, depth ≥ {slam_min_depth_m:g} m (SLAM range)",
               "flat_road_far": f"flat_road, depth ≥ {slam_min_depth_m:g} m"}
     for name, res in rows:
