@@ -29,6 +29,7 @@ COMMANDS: dict[str, str] = {
     "poses": "metricslam.cli.poses_cmd",
     "demo": "metricslam.cli.demo_cmd",
     "camera": "metricslam.cli.camera_cmd",
+    "quantize": "metricslam.cli.quantize_cmd",
 }
 
 log = logging.getLogger("metricslam")

@@ -12,12 +12,17 @@ camera with focal length ``fx_px`` at image width ``width_px``::
 Every field is written into the ONNX ``metadata_props`` as one key (strings as they are, other
 values JSON-encoded); :meth:`ModelContract.from_metadata` refuses a model whose metadata is
 incomplete or whose ``contract_version`` / ``output_definition`` differ from this code's.
+
+Optional keys (:data:`OPTIONAL_FIELDS`) may be absent and then take their default, so models
+exported before the key existed still load: ``weights_precision`` ("float32", or "int8-static"
+for a model written by :func:`metricslam.depth.quantize.quantize_model`; any other value is
+refused).
 """
 
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -27,6 +32,11 @@ from metricslam.errors import DepthModelError
 CONTRACT_VERSION = "1"
 #: the only output definition this code understands.
 OUTPUT_DEFINITION = "disparity_fraction_of_width"
+#: weight precisions this code runs: the exported float32 graph, or its static int8 quantization.
+WeightsPrecision = Literal["float32", "int8-static"]
+WEIGHTS_PRECISIONS: tuple[str, ...] = get_args(WeightsPrecision)
+#: metadata keys a model may omit (they take the field's default).
+OPTIONAL_FIELDS: frozenset[str] = frozenset({"weights_precision"})
 
 
 class Normalization(BaseModel):
@@ -53,6 +63,8 @@ class ModelContract(BaseModel):
         training_data: the exact training set (sequence list), free text.
         training_commit: git commit of the code that trained/exported the model.
         created: ISO-8601 UTC time of export.
+        weights_precision: "float32" (as exported) or "int8-static" (quantized weights and
+            activations, calibrated; see ``docs/depth_quantization.md``). Optional key.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -73,6 +85,7 @@ class ModelContract(BaseModel):
     training_data: str
     training_commit: str
     created: str
+    weights_precision: WeightsPrecision = "float32"
 
     def to_metadata(self) -> dict[str, str]:
         """Flat ``{key: str}`` for ONNX ``metadata_props``."""
@@ -84,7 +97,7 @@ class ModelContract(BaseModel):
     @classmethod
     def from_metadata(cls, metadata: dict[str, str]) -> "ModelContract":
         """Parse ONNX metadata; raise :class:`DepthModelError` if anything is missing or mismatched."""
-        missing = [name for name in cls.model_fields if name not in metadata]
+        missing = [name for name in cls.model_fields if name not in metadata and name not in OPTIONAL_FIELDS]
         if missing:
             raise DepthModelError(
                 f"model metadata lacks {missing}: not a metricslam depth model, or exported by an old "
@@ -101,10 +114,18 @@ class ModelContract(BaseModel):
                 f"model output_definition is {metadata['output_definition']!r}, this code only understands "
                 f"{OUTPUT_DEFINITION!r}: use a model exported by `metricslam export`"
             )
+        precision = metadata.get("weights_precision", "float32")
+        if precision not in WEIGHTS_PRECISIONS:
+            raise DepthModelError(
+                f"model weights_precision is {precision!r}, this code runs only {list(WEIGHTS_PRECISIONS)}: "
+                "use a model exported by `metricslam export` or quantized by `metricslam quantize`"
+            )
         values: dict[str, Any] = {}
         for name, field in cls.model_fields.items():
+            if name not in metadata:
+                continue  # an optional key: the field's default
             raw = metadata[name]
-            if field.annotation is str:
+            if field.annotation is str or get_origin(field.annotation) is Literal:
                 values[name] = raw
             else:
                 try:
