@@ -235,7 +235,10 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
         quantized = onnx.load(str(q_path))
         metadata = {p.key: p.value for p in onnx.load(str(src_path), load_external_data=False).metadata_props}
         metadata.update(weights_precision=INT8_STATIC, calibration_data=description)
-        onnx.helper.set_model_props(quantized, metadata)  # replaces the quantizer's own keys
+        # onnxruntime 1.31 keeps the source's metadata_props and adds its own markers (onnx.infer,
+        # onnx.quant.pre_process); writing the source's keys explicitly keeps the contract
+        # independent of that behaviour, and leaves only metricslam's keys.
+        onnx.helper.set_model_props(quantized, metadata)
         _drop_unused_opsets(quantized)
         staged = Path(tmp) / "out.onnx"
         onnx.save(quantized, str(staged))

@@ -1,0 +1,158 @@
+"""Static int8 quantization of the depth model: contract kept, precision declared, output close
+to float32 on a held-out image, bad inputs refused with actionable messages (CLI included)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import onnx
+import pytest
+
+from metricslam.cli.main import main
+from metricslam.datasets._common import load_image
+from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, ModelContract
+from metricslam.depth.quantize import (INT8_STATIC, _CalibrationReader, find_calibration_images,
+                                       quantize_model)
+from metricslam.errors import DatasetError, DepthModelError
+
+#: int8 vs float32 d_frac on a held-out image: median |log(int8 / fp32)| must stay below this (5 %).
+MEDIAN_ABS_LOG_RATIO_TOL = 0.05
+
+
+def _metadata(path) -> dict[str, str]:
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+
+
+@pytest.fixture(scope="module")
+def calib_dir(synth_sequence):
+    return synth_sequence(8, seed=5)
+
+
+@pytest.fixture(scope="module")
+def held_out_image(synth_sequence) -> np.ndarray:
+    """A frame of another world (other seed): never seen by the calibration."""
+    folder = synth_sequence(8, seed=9)
+    return load_image(sorted((folder / "image_0").glob("*.png"))[4], color=False)
+
+
+@pytest.fixture(scope="module")
+def int8_model(calib_dir, tmp_path_factory):
+    """The shipped default quantized with 6 rendered images, passed as in-memory arrays."""
+    arrays = [load_image(p, color=False) for p in find_calibration_images([calib_dir])[:6]]
+    out = tmp_path_factory.mktemp("int8") / "depth_int8.onnx"
+    result = quantize_model(DEFAULT_MODEL_PATH, out, arrays)
+    assert result.n_images == 6 and result.out_path == out
+    return out
+
+
+def test_quantized_model_keeps_contract_and_declares_precision(int8_model):
+    source, quantized = _metadata(DEFAULT_MODEL_PATH), _metadata(int8_model)
+    assert {k: quantized[k] for k in source} == source
+    assert quantized["weights_precision"] == INT8_STATIC
+    assert quantized["calibration_data"].startswith("6 images")
+    model = DepthModel.load(int8_model)
+    assert model.contract.weights_precision == INT8_STATIC
+    fp32 = DepthModel.load()
+    assert fp32.contract.weights_precision == "float32"
+    assert model.contract.model_copy(update={"weights_precision": "float32"}) == fp32.contract
+
+
+def test_quantized_graph_is_int8_qdq_with_standard_operators_only(int8_model):
+    graph = onnx.load(str(int8_model))
+    ops = {(node.domain, node.op_type) for node in graph.graph.node}
+    assert ("", "QuantizeLinear") in ops and ("", "DequantizeLinear") in ops
+    assert {domain for domain, _ in ops} == {""}
+    assert {op.domain for op in graph.opset_import} <= {"", "ai.onnx"}
+    weights = [t for t in graph.graph.initializer if t.data_type == onnx.TensorProto.INT8]
+    assert sum(int(np.prod(t.dims)) for t in weights) > 0.9 * DepthModel.load().contract.params
+    assert int8_model.stat().st_size < DEFAULT_MODEL_PATH.stat().st_size / 2
+
+
+def test_int8_inverse_depth_agrees_with_fp32_on_held_out_image(int8_model, held_out_image):
+    fx_px = 0.6 * held_out_image.shape[1]
+    ref = DepthModel.load().predict_inv_depth(held_out_image, fx_px).inv_depth_per_m
+    got = DepthModel.load(int8_model).predict_inv_depth(held_out_image, fx_px).inv_depth_per_m
+    assert got.shape == ref.shape and np.all(got > 0)
+    log_ratio = np.abs(np.log(got.astype(np.float64) / ref))
+    assert np.median(log_ratio) < MEDIAN_ABS_LOG_RATIO_TOL, np.median(log_ratio)
+
+
+def test_calibration_reader_preprocesses_files_and_arrays_like_inference(calib_dir):
+    model = DepthModel.load()
+    path = find_calibration_images([calib_dir])[0]
+    image = load_image(path, color=False)
+    reader = _CalibrationReader(model, [path, image, np.dstack([image] * 3)])
+    batches = [reader.get_next() for _ in range(3)]
+    assert reader.get_next() is None and reader.count == 3
+    expected = model.preprocess([image])
+    for batch in batches:
+        np.testing.assert_array_equal(batch[model.contract.input_name], expected)
+
+
+@pytest.mark.parametrize("value", ["int4", "float16", ""])
+def test_unknown_weights_precision_is_refused(int8_model, tmp_path, value):
+    graph = onnx.load(str(int8_model))
+    onnx.helper.set_model_props(graph, {**_metadata(int8_model), "weights_precision": value})
+    bad = tmp_path / "bad.onnx"
+    onnx.save(graph, str(bad))
+    with pytest.raises(DepthModelError, match=r"weights_precision is .*metricslam quantize"):
+        DepthModel.load(bad)
+
+
+def test_contract_without_weights_precision_key_is_float32():
+    meta = DepthModel.load().contract.to_metadata()
+    del meta["weights_precision"]  # a model exported before the key existed
+    assert ModelContract.from_metadata(meta).weights_precision == "float32"
+
+
+def test_quantize_refuses_int8_source_and_empty_calibration(int8_model, tmp_path, held_out_image):
+    out = tmp_path / "out.onnx"
+    with pytest.raises(DepthModelError, match="already int8-static"):
+        quantize_model(int8_model, out, [held_out_image])
+    with pytest.raises(DepthModelError, match="at least one calibration image"):
+        quantize_model(DEFAULT_MODEL_PATH, out, [])
+    assert not out.exists()
+
+
+def test_find_calibration_images_layouts_stride_and_cap(tmp_path):
+    image = np.zeros((20, 30), np.uint8)
+    seq = tmp_path / "seq"
+    for sub in ("image_0", "image_1"):
+        (seq / sub).mkdir(parents=True)
+        for i in range(7):
+            cv2.imwrite(str(seq / sub / f"{i:06d}.png"), image)
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for name in ("b.jpg", "a.png", "notes.txt"):
+        (flat / name).write_bytes(b"x")
+    left = sorted((seq / "image_0").glob("*.png"))
+
+    assert find_calibration_images([seq]) == left  # KITTI layout: the left images only
+    assert find_calibration_images([flat]) == [flat / "a.png", flat / "b.jpg"]
+    assert find_calibration_images([seq, flat], stride=3) == left[::3] + [flat / "a.png"]
+    assert find_calibration_images([str(tmp_path / "se*" / "image_*" / "000000.png")]) == [
+        seq / "image_0" / "000000.png", seq / "image_1" / "000000.png"]
+    assert find_calibration_images([seq], max_images=3) == [left[0], left[3], left[6]]
+    for missing in (tmp_path / "absent", tmp_path / "nothing*"):
+        with pytest.raises(DatasetError, match="holds no image"):
+            find_calibration_images([missing])
+
+
+def test_cli_quantize_writes_a_loadable_model(calib_dir, tmp_path, capsys):
+    out = tmp_path / "cli_int8.onnx"
+    assert main(["quantize", str(DEFAULT_MODEL_PATH), "--calib", str(calib_dir), "--max-images", "2",
+                 "--out", str(out)]) == 0
+    assert "int8-static" in capsys.readouterr().out
+    contract = DepthModel.load(out).contract
+    assert contract.weights_precision == INT8_STATIC
+    assert _metadata(out)["calibration_data"] == f"2 images: {(calib_dir / 'image_0').resolve()} (2)"
+
+
+def test_cli_quantize_refuses_a_folder_without_images(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = tmp_path / "never.onnx"
+    assert main(["quantize", str(DEFAULT_MODEL_PATH), "--calib", str(empty), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert str(empty) in err and "holds no image" in err and "KITTI sequence folder" in err
+    assert not out.exists()
