@@ -7,12 +7,16 @@ import cv2
 import numpy as np
 import onnx
 import pytest
-
 from metricslam.cli.main import main
 from metricslam.datasets._common import load_image
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, ModelContract
-from metricslam.depth.quantize import (INT8_STATIC, _CalibrationReader, find_calibration_images,
-                                       quantize_model)
+from metricslam.depth.quantize import (
+    INT8_STATIC,
+    _CalibrationReader,
+    compare_models,
+    find_images,
+    quantize_model,
+)
 from metricslam.errors import DatasetError, DepthModelError
 
 #: int8 vs float32 d_frac on a held-out image: median |log(int8 / fp32)| must stay below this (5 %).
@@ -38,7 +42,7 @@ def held_out_image(synth_sequence) -> np.ndarray:
 @pytest.fixture(scope="module")
 def int8_model(calib_dir, tmp_path_factory):
     """The shipped default quantized with 6 rendered images, passed as in-memory arrays."""
-    arrays = [load_image(p, color=False) for p in find_calibration_images([calib_dir])[:6]]
+    arrays = [load_image(p, color=False) for p in find_images([calib_dir])[:6]]
     out = tmp_path_factory.mktemp("int8") / "depth_int8.onnx"
     result = quantize_model(DEFAULT_MODEL_PATH, out, arrays)
     assert result.n_images == 6 and result.out_path == out
@@ -77,9 +81,19 @@ def test_int8_inverse_depth_agrees_with_fp32_on_held_out_image(int8_model, held_
     assert np.median(log_ratio) < MEDIAN_ABS_LOG_RATIO_TOL, np.median(log_ratio)
 
 
+def test_compare_models_is_zero_for_a_model_against_itself_and_small_for_int8(int8_model, held_out_image):
+    fp32 = DepthModel.load()
+    same = compare_models(fp32, fp32, [held_out_image, held_out_image[::-1]])
+    assert same.n_images == 2 and same.max == 0.0
+    int8 = compare_models(fp32, DepthModel.load(int8_model), [held_out_image])
+    assert 0.0 < int8.median <= int8.p95 <= int8.max and int8.median < MEDIAN_ABS_LOG_RATIO_TOL
+    with pytest.raises(DepthModelError, match="at least one image"):
+        compare_models(fp32, fp32, [])
+
+
 def test_calibration_reader_preprocesses_files_and_arrays_like_inference(calib_dir):
     model = DepthModel.load()
-    path = find_calibration_images([calib_dir])[0]
+    path = find_images([calib_dir])[0]
     image = load_image(path, color=False)
     reader = _CalibrationReader(model, [path, image, np.dstack([image] * 3)])
     batches = [reader.get_next() for _ in range(3)]
@@ -114,7 +128,7 @@ def test_quantize_refuses_int8_source_and_empty_calibration(int8_model, tmp_path
     assert not out.exists()
 
 
-def test_find_calibration_images_layouts_stride_and_cap(tmp_path):
+def test_find_images_layouts_stride_and_cap(tmp_path):
     image = np.zeros((20, 30), np.uint8)
     seq = tmp_path / "seq"
     for sub in ("image_0", "image_1"):
@@ -127,22 +141,24 @@ def test_find_calibration_images_layouts_stride_and_cap(tmp_path):
         (flat / name).write_bytes(b"x")
     left = sorted((seq / "image_0").glob("*.png"))
 
-    assert find_calibration_images([seq]) == left  # KITTI layout: the left images only
-    assert find_calibration_images([flat]) == [flat / "a.png", flat / "b.jpg"]
-    assert find_calibration_images([seq, flat], stride=3) == left[::3] + [flat / "a.png"]
-    assert find_calibration_images([str(tmp_path / "se*" / "image_*" / "000000.png")]) == [
+    assert find_images([seq]) == left  # KITTI layout: the left images only
+    assert find_images([flat]) == [flat / "a.png", flat / "b.jpg"]
+    assert find_images([seq, flat], stride=3) == left[::3] + [flat / "a.png"]
+    assert find_images([str(tmp_path / "se*" / "image_*" / "000000.png")]) == [
         seq / "image_0" / "000000.png", seq / "image_1" / "000000.png"]
-    assert find_calibration_images([seq], max_images=3) == [left[0], left[3], left[6]]
+    assert find_images([seq], max_images=3) == [left[0], left[3], left[6]]
     for missing in (tmp_path / "absent", tmp_path / "nothing*"):
         with pytest.raises(DatasetError, match="holds no image"):
-            find_calibration_images([missing])
+            find_images([missing])
 
 
-def test_cli_quantize_writes_a_loadable_model(calib_dir, tmp_path, capsys):
+def test_cli_quantize_writes_a_loadable_model(calib_dir, synth_sequence, tmp_path, capsys):
     out = tmp_path / "cli_int8.onnx"
+    held_out = synth_sequence(8, seed=9) / "image_0" / "000004.png"
     assert main(["quantize", str(DEFAULT_MODEL_PATH), "--calib", str(calib_dir), "--max-images", "2",
-                 "--out", str(out)]) == 0
-    assert "int8-static" in capsys.readouterr().out
+                 "--out", str(out), "--check", str(held_out)]) == 0
+    printed = capsys.readouterr().out
+    assert "int8-static" in printed and "int8 vs float32 on 1 images: |log(d_int8 / d_fp32)| median" in printed
     contract = DepthModel.load(out).contract
     assert contract.weights_precision == INT8_STATIC
     assert _metadata(out)["calibration_data"] == f"2 images: {(calib_dir / 'image_0').resolve()} (2)"

@@ -41,14 +41,23 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["QDQ", "QOperator"], default="QDQ",
                    help="QDQ (standard ONNX ops, default) or QOperator (onnxruntime-only ops)")
     p.add_argument("--out", required=True, help="output ONNX file")
+    p.add_argument("--check", action="append", metavar="DIR_OR_GLOB",
+                   help="held-out images (any data, e.g. KITTI 06) on which to report the int8 output's "
+                        "difference from float32: |log(int8/fp32)| median, p95, max; repeatable")
     p.set_defaults(func=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    from metricslam.depth.quantize import QuantizeConfig, find_calibration_images, quantize_model
+    from metricslam.depth.model import DepthModel
+    from metricslam.depth.quantize import (
+        QuantizeConfig,
+        compare_models,
+        find_images,
+        quantize_model,
+    )
 
-    images = find_calibration_images(args.calib, stride=args.stride, max_images=args.max_images)
+    images = find_images(args.calib, stride=args.stride, max_images=args.max_images)
     suspicious = sorted({str(p.parent) for p in images
                          if any(m in p.resolve().as_posix() for m in EVALUATION_MARKERS)})
     if suspicious:
@@ -57,5 +66,10 @@ def run(args: argparse.Namespace) -> int:
     result = quantize_model(args.model, args.out, images, QuantizeConfig(quant_format=args.format))
     size_mb = result.out_path.stat().st_size / 1e6
     print(f"{result.out_path}: {result.contract.weights_precision} model {result.contract.model_id}, "
-          f"{size_mb:.1f} MB, calibrated on {result.calibration_data[:200]}")
+          f"{size_mb:.1f} MB, calibrated on {result.n_images} images")
+    if args.check:
+        held_out = find_images(args.check)
+        agreement = compare_models(DepthModel.load(args.model), DepthModel.load(result.out_path), held_out)
+        print(f"int8 vs float32 on {agreement.n_images} images: |log(d_int8 / d_fp32)| median "
+              f"{agreement.median:.4f}, p95 {agreement.p95:.4f}, max {agreement.max:.4f}")
     return 0

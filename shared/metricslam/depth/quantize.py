@@ -32,9 +32,10 @@ from __future__ import annotations
 import glob
 import tempfile
 from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -111,9 +112,8 @@ def _images_in(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def find_calibration_images(sources: Iterable[str | Path], stride: int = 1,
-                            max_images: int | None = None) -> list[Path]:
-    """Image files named by folders or glob patterns, thinned for calibration.
+def find_images(sources: Iterable[str | Path], stride: int = 1, max_images: int | None = None) -> list[Path]:
+    """Image files named by folders or glob patterns, thinned (for calibration or a check).
 
     Args:
         sources: each a KITTI-layout sequence folder (its ``image_0/*``), a folder of images, an
@@ -140,7 +140,7 @@ def find_calibration_images(sources: Iterable[str | Path], stride: int = 1,
             elif match.is_file() and match.suffix.lower() in IMAGE_SUFFIXES:
                 images.append(match)
         if not images:
-            raise DatasetError("calibration source holds no image: give a KITTI sequence folder (with "
+            raise DatasetError("image source holds no image: give a KITTI sequence folder (with "
                                "image_0/), a folder of PNG/JPEG images, an image file, or a glob of them", text)
         found += images
     by_folder: dict[Path, list[Path]] = {}
@@ -151,6 +151,43 @@ def find_calibration_images(sources: Iterable[str | Path], stride: int = 1,
         picks = np.unique(np.linspace(0, len(kept) - 1, max_images).round().astype(int))
         kept = [kept[i] for i in picks]
     return kept
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How far a candidate model's output is from a reference's: ``|log(d_cand / d_ref)|`` over
+    every output cell of every image (0.01 ≈ 1 % relative difference in depth).
+
+    Attributes:
+        n_images: images compared.
+        median / p95 / max: statistics of the absolute log ratio (dimensionless).
+    """
+
+    n_images: int
+    median: float
+    p95: float
+    max: float
+
+
+def compare_models(reference: DepthModel, candidate: DepthModel, images: Iterable[CalibImage]) -> Agreement:
+    """Per-cell agreement of two models' ``d_frac`` on the same images (files or uint8 arrays).
+
+    Raises:
+        DepthModelError: no image given, or an output is not positive (log undefined).
+    """
+    ratios: list[np.ndarray] = []
+    for image in images:
+        pixels = image if isinstance(image, np.ndarray) else load_image(Path(image), color=False)
+        ref = reference.predict_d_frac([pixels])[0].astype(np.float64)
+        cand = candidate.predict_d_frac([pixels])[0].astype(np.float64)
+        if np.any(ref <= 0) or np.any(cand <= 0):
+            raise DepthModelError("a model output a non-positive disparity: cannot compare in log space")
+        ratios.append(np.abs(np.log(cand / ref)).ravel())
+    if not ratios:
+        raise DepthModelError("compare_models needs at least one image")
+    all_ratios = np.concatenate(ratios)
+    return Agreement(n_images=len(ratios), median=float(np.median(all_ratios)),
+                     p95=float(np.percentile(all_ratios, 95)), max=float(all_ratios.max()))
 
 
 def _drop_unused_opsets(model) -> None:
@@ -180,7 +217,7 @@ class _CalibrationReader:
 
 
 def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Iterable[CalibImage],
-                   config: QuantizeConfig = QuantizeConfig(), calibration_data: str | None = None,
+                   config: QuantizeConfig | None = None, calibration_data: str | None = None,
                    ) -> QuantizeResult:
     """Write a static int8 copy of the float32 depth model ``src_onnx`` to ``out_onnx``.
 
@@ -189,7 +226,7 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
         out_onnx: output file; written only when quantization succeeded.
         calib_images: image files (any format OpenCV reads, gray or colour) or uint8 arrays
             ((H, W) gray or (H, W, 3) RGB, any size) from the model's training data. Iterated once.
-        config: quantizer settings.
+        config: quantizer settings; ``None`` for the defaults.
         calibration_data: text for the ``calibration_data`` metadata key; default
             :func:`describe_calibration` of the images.
 
@@ -200,12 +237,18 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
     """
     try:
         import onnx
-        from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+        from onnxruntime.quantization import (
+            CalibrationMethod,
+            QuantFormat,
+            QuantType,
+            quantize_static,
+        )
         from onnxruntime.quantization.shape_inference import quant_pre_process
     except ImportError as exc:
         raise DepthModelError(f"quantization needs the onnx package ({exc}): "
                               "pip install 'metricslam[quantize]'") from exc
 
+    config = config if config is not None else QuantizeConfig()
     src_path, out_path = Path(src_onnx), Path(out_onnx)
     source = DepthModel.load(src_path, threads=1)
     if source.contract.weights_precision != "float32":
