@@ -3,6 +3,8 @@ to float32 on a held-out image, bad inputs refused with actionable messages (CLI
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import onnx
@@ -54,6 +56,8 @@ def test_quantized_model_keeps_contract_and_declares_precision(int8_model):
     assert {k: quantized[k] for k in source} == source
     assert quantized["weights_precision"] == INT8_STATIC
     assert quantized["calibration_data"].startswith("6 images")
+    settings = json.loads(quantized["quantization"])
+    assert settings["quant_format"] == "QDQ" and settings["per_channel"] is True
     model = DepthModel.load(int8_model)
     assert model.contract.weights_precision == INT8_STATIC
     fp32 = DepthModel.load()

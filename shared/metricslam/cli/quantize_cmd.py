@@ -40,6 +40,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--max-images", type=int, help="at most N calibration images, evenly spaced")
     p.add_argument("--format", choices=["QDQ", "QOperator"], default="QDQ",
                    help="QDQ (standard ONNX ops, default) or QOperator (onnxruntime-only ops)")
+    p.add_argument("--reduce-range", action="store_true",
+                   help="7-bit weights: for x86 CPUs without VNNI (AVX2 only), where 8-bit products can saturate")
     p.add_argument("--out", required=True, help="output ONNX file")
     p.add_argument("--check", action="append", metavar="DIR_OR_GLOB",
                    help="held-out images (any data, e.g. KITTI 06) on which to report the int8 output's "
@@ -63,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
     if suspicious:
         log.warning("calibration images from %s look like an evaluation set: calibrate on training "
                     "images only, or the evaluation of this model is no longer held out", suspicious)
-    result = quantize_model(args.model, args.out, images, QuantizeConfig(quant_format=args.format))
+    config = QuantizeConfig(quant_format=args.format, reduce_range=args.reduce_range)
+    result = quantize_model(args.model, args.out, images, config)
     size_mb = result.out_path.stat().st_size / 1e6
     print(f"{result.out_path}: {result.contract.weights_precision} model {result.contract.model_id}, "
           f"{size_mb:.1f} MB, calibrated on {result.n_images} images")

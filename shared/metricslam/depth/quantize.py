@@ -4,7 +4,8 @@ Weights are quantized per output channel to signed int8, activations to unsigned
 ranges calibrated (min/max) on images preprocessed exactly as :meth:`DepthModel.preprocess` does
 at inference. The result is an ONNX file that :meth:`DepthModel.load` runs like the float32
 one; it carries the source's whole :class:`~metricslam.depth.contract.ModelContract` plus
-``weights_precision = "int8-static"`` and ``calibration_data`` (which images, how many).
+``weights_precision = "int8-static"``, ``calibration_data`` (which images, how many) and
+``quantization`` (JSON: tool and settings).
 
 Format: **QDQ** (QuantizeLinear/DequantizeLinear pairs around float operators) by default. It
 uses only standard ONNX operators, so the file loads in any ONNX runtime, and onnxruntime's CPU
@@ -30,6 +31,7 @@ Example::
 from __future__ import annotations
 
 import glob
+import json
 import tempfile
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -237,6 +239,7 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
     """
     try:
         import onnx
+        import onnxruntime
         from onnxruntime.quantization import (
             CalibrationMethod,
             QuantFormat,
@@ -277,7 +280,11 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
 
         quantized = onnx.load(str(q_path))
         metadata = {p.key: p.value for p in onnx.load(str(src_path), load_external_data=False).metadata_props}
-        metadata.update(weights_precision=INT8_STATIC, calibration_data=description)
+        settings = {"tool": f"onnxruntime {onnxruntime.__version__} quantize_static",
+                    "activations": "uint8", "weights": "int8", "calibration": "MinMax",
+                    **config.model_dump(exclude={"max_intermediate_outputs"})}
+        metadata.update(weights_precision=INT8_STATIC, calibration_data=description,
+                        quantization=json.dumps(settings))
         # onnxruntime 1.31 keeps the source's metadata_props and adds its own markers (onnx.infer,
         # onnx.quant.pre_process); writing the source's keys explicitly keeps the contract
         # independent of that behaviour, and leaves only metricslam's keys.
