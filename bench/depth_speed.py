@@ -75,11 +75,12 @@ def main(argv: list[str] | None = None) -> int:
         load = os.getloadavg()
         machine = (f"{platform.machine()}, {os.cpu_count()} CPUs, python {platform.python_version()}, "
                    f"load average at the end {load[0]:.2f} (shared machine: others' jobs were running)")
-        out.with_suffix(".json").write_text(json.dumps({"model_id": c.model_id, "input": [c.input_height, c.input_width],
+        out.with_suffix(".json").write_text(json.dumps({"model_id": c.model_id, "weights_precision": c.weights_precision,
+                                                        "input": [c.input_height, c.input_width],
                                                         "machine": machine, "results": results}, indent=2))
         out.with_suffix(".md").write_text(
             f"# Depth model speed (onnxruntime, CPU)\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
-            f"Machine: {machine}.\nModel `{c.model_id}`, input {c.input_height}x{c.input_width}, output "
+            f"Machine: {machine}.\nModel `{c.model_id}` ({c.weights_precision}), input {c.input_height}x{c.input_width}, output "
             f"{c.output_height}x{c.output_width}, {c.params} parameters. {args.repeats} runs after {args.warmup} warm-up.\n\n"
             f"{table}\n")
     return 0
