@@ -123,12 +123,16 @@ def test_contract_without_weights_precision_key_is_float32():
     assert ModelContract.from_metadata(meta).weights_precision == "float32"
 
 
-def test_quantize_refuses_int8_source_and_empty_calibration(int8_model, tmp_path, held_out_image):
+def test_quantize_refuses_int8_source_empty_calibration_and_unreadable_image(int8_model, tmp_path, held_out_image):
     out = tmp_path / "out.onnx"
     with pytest.raises(DepthModelError, match="already int8-static"):
         quantize_model(int8_model, out, [held_out_image])
     with pytest.raises(DepthModelError, match="at least one calibration image"):
         quantize_model(DEFAULT_MODEL_PATH, out, [])
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(DatasetError, match="broken.png.*cannot read image"):
+        quantize_model(DEFAULT_MODEL_PATH, out, [held_out_image, broken])
     assert not out.exists()
 
 

@@ -45,7 +45,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from metricslam.datasets._common import load_image
 from metricslam.depth.contract import ModelContract
 from metricslam.depth.model import DepthModel
-from metricslam.errors import DatasetError, DepthModelError
+from metricslam.errors import DatasetError, DepthModelError, MetricSlamError
 
 #: metadata value of a model written by :func:`quantize_model`.
 INT8_STATIC = "int8-static"
@@ -275,6 +275,8 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                             calibrate_method=CalibrationMethod.MinMax,
                             extra_options={"CalibMaxIntermediateOutputs": config.max_intermediate_outputs})
+        except MetricSlamError:
+            raise  # a calibration image could not be read: the message names it
         except Exception as exc:  # onnxruntime's quantizer raises untyped errors
             raise DepthModelError(f"onnxruntime could not quantize {src_path}: {exc}") from exc
 
