@@ -7,7 +7,6 @@ import json
 
 import cv2
 import numpy as np
-import onnx
 import pytest
 from metricslam.cli.main import main
 from metricslam.datasets._common import load_image
@@ -20,6 +19,8 @@ from metricslam.depth.quantize import (
     quantize_model,
 )
 from metricslam.errors import DatasetError, DepthModelError
+
+onnx = pytest.importorskip("onnx", reason="quantization needs onnx: pip install 'metricslam[quantize]'")
 
 #: int8 vs float32 d_frac on a held-out image: median |log(int8 / fp32)| must stay below this (5 %).
 MEDIAN_ABS_LOG_RATIO_TOL = 0.05
