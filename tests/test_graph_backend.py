@@ -6,7 +6,7 @@ import threading
 
 import numpy as np
 import pytest
-from graph_chain import run_backend
+from graph_chain import FAST_DRIFT, run_backend
 from metricslam.errors import DepthSourceError
 from metricslam.geometry import se3, sim3
 from metricslam.slam.backend_factory import make_backend
@@ -58,7 +58,8 @@ def test_corrections_make_vo_metric_and_keyframe_scales_consistent(inline):
     T = circle_path(n, 40.0, turns=0.6)
     vo = SimulatedVO(T, drift_per_kf=0.01, sigma0=3.0, seed=2)
     # a queue as long as the run: no request is dropped even though keyframes come in a burst
-    backend = GlobalBackend(GraphConfig(inline=inline, depth_queue_size=n), depth_source=SyntheticDepthSource(n))
+    backend = GlobalBackend(GraphConfig(inline=inline, depth_queue_size=n, **FAST_DRIFT),
+                           depth_source=SyntheticDepthSource(n))
     scales_applied = [sim3.scale(S) for S in run_backend(backend, vo, n)]
     vo.apply_similarity(backend.take_correction())  # the final solve's warp
     assert backend.scale_established
@@ -166,7 +167,7 @@ def test_keyframe_delivered_after_a_correction_is_placed_in_its_own_epoch():
     n = 60
     T = circle_path(n, 40.0, turns=0.5)
     vo = SimulatedVO(T, drift_per_kf=0.01, sigma0=3.0, seed=7)
-    backend = GlobalBackend(GraphConfig(inline=True), depth_source=SyntheticDepthSource(n))
+    backend = GlobalBackend(GraphConfig(inline=True, **FAST_DRIFT), depth_source=SyntheticDepthSource(n))
     outbox = []
     for k in range(n):
         outbox.append(vo.next_keyframe())  # marginalized now ...

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from graph_chain import add_odometry_keyframe
+from graph_chain import FAST_DRIFT, add_odometry_keyframe
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
@@ -14,7 +14,7 @@ N = 80
 
 def _drifting_circle(seed: int = 5) -> tuple[GlobalPoseGraph, SimulatedVO, np.ndarray]:
     """A closed circle driven by a VO whose scale drifts 1 %/keyframe, no scale factors."""
-    cfg = GraphConfig()
+    cfg = GraphConfig(**FAST_DRIFT)
     T = circle_path(N, 40.0, turns=1.0 * (N - 1) / N)  # last keyframe just before the start
     vo = SimulatedVO(T, drift_per_kf=0.01, drift_noise=0.004, seed=seed)
     graph = GlobalPoseGraph(cfg, anchor_scale=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-from graph_chain import add_odometry_keyframe
+from graph_chain import FAST_DRIFT, add_odometry_keyframe
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from metricslam.geometry import sim3
@@ -88,7 +88,7 @@ def test_gtsam_conversion_round_trip():
 def _build(n: int, with_scale_factors: bool, drift: float = 0.02,
            mode: str = "per_keyframe") -> tuple[GlobalPoseGraph, SimulatedVO]:
     """Feed a drifting SimulatedVO straight into a graph (no corrections: VO units drift)."""
-    cfg = GraphConfig(scale_factor_mode=mode)
+    cfg = GraphConfig(scale_factor_mode=mode, **FAST_DRIFT)
     T = circle_path(n, 60.0, turns=0.5)
     vo = SimulatedVO(T, drift_per_kf=drift, seed=3)
     src = SyntheticDepthSource(n, noise_log_sigma=0.05)
