@@ -8,10 +8,18 @@ import sys
 
 import cv2
 import numpy as np
+import onnxruntime as ort
 import pytest
 
 from metricslam.cli.main import main
-from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, ModelContract, Normalization, sample_map
+from metricslam.depth import (
+    DEFAULT_MODEL_PATH,
+    FLOAT32_MODEL_PATH,
+    DepthModel,
+    ModelContract,
+    Normalization,
+    sample_map,
+)
 from metricslam.depth.contract import CONTRACT_VERSION
 from metricslam.errors import DepthModelError, ImageError
 
@@ -69,6 +77,19 @@ def test_shipped_model_contract(shipped):
     assert "kitti06" not in c.training_data  # KITTI 06 is held out for evaluation
 
 
+def test_default_model_is_the_int8_copy_of_the_float32_network(shipped):
+    fp32 = DepthModel.load(FLOAT32_MODEL_PATH)
+    assert DEFAULT_MODEL_PATH != FLOAT32_MODEL_PATH and DEFAULT_MODEL_PATH.is_file()
+    assert shipped.contract.weights_precision == "int8-static"
+    assert fp32.contract.weights_precision == "float32"
+    assert shipped.contract.model_id == fp32.contract.model_id  # the same network, quantized
+    assert shipped.contract.model_copy(update={"weights_precision": "float32"}) == fp32.contract
+    # its activation ranges were calibrated on training images only, never on an evaluation set
+    meta = ort.InferenceSession(str(DEFAULT_MODEL_PATH)).get_modelmeta().custom_metadata_map
+    assert meta["calibration_data"] and "sequences/06" not in meta["calibration_data"]
+    assert "kitti_raw_lidar" not in meta["calibration_data"]
+
+
 @pytest.mark.parametrize("shape", [(370, 1226), (375, 1242, 3), (97, 211), (480, 640, 3)])
 def test_predict_shapes_and_metric_conversion(shipped, shape):
     rng = np.random.default_rng(0)
@@ -101,11 +122,12 @@ def test_bad_images_raise(shipped):
         shipped.predict_d_frac([])
 
 
-def test_load_missing_or_foreign_model_raises(tmp_path):
+@pytest.mark.parametrize("shipped_path", [DEFAULT_MODEL_PATH, FLOAT32_MODEL_PATH], ids=["int8", "float32"])
+def test_load_missing_or_foreign_model_raises(tmp_path, shipped_path):
     with pytest.raises(DepthModelError, match="does not exist"):
         DepthModel.load(tmp_path / "nope.onnx")
     onnx = pytest.importorskip("onnx")
-    model = onnx.load(str(DEFAULT_MODEL_PATH))
+    model = onnx.load(str(shipped_path))
     del model.metadata_props[:]
     bare = tmp_path / "bare.onnx"
     onnx.save(model, str(bare))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from metricslam.cli.main import main
 from metricslam.datasets._common import load_image
-from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, ModelContract
+from metricslam.depth import DEFAULT_MODEL_PATH, FLOAT32_MODEL_PATH, DepthModel, ModelContract
 from metricslam.depth.quantize import (
     INT8_STATIC,
     _CalibrationReader,
@@ -44,16 +44,16 @@ def held_out_image(synth_sequence) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def int8_model(calib_dir, tmp_path_factory):
-    """The shipped default quantized with 6 rendered images, passed as in-memory arrays."""
+    """The shipped float32 model quantized with 6 rendered images, passed as in-memory arrays."""
     arrays = [load_image(p, color=False) for p in find_images([calib_dir])[:6]]
     out = tmp_path_factory.mktemp("int8") / "depth_int8.onnx"
-    result = quantize_model(DEFAULT_MODEL_PATH, out, arrays)
+    result = quantize_model(FLOAT32_MODEL_PATH, out, arrays)
     assert result.n_images == 6 and result.out_path == out
     return out
 
 
 def test_quantized_model_keeps_contract_and_declares_precision(int8_model):
-    source, quantized = _metadata(DEFAULT_MODEL_PATH), _metadata(int8_model)
+    source, quantized = _metadata(FLOAT32_MODEL_PATH), _metadata(int8_model)
     assert {k: quantized[k] for k in source} == source
     assert quantized["weights_precision"] == INT8_STATIC
     assert quantized["calibration_data"].startswith("6 images")
@@ -61,7 +61,7 @@ def test_quantized_model_keeps_contract_and_declares_precision(int8_model):
     assert settings["quant_format"] == "QDQ" and settings["per_channel"] is True
     model = DepthModel.load(int8_model)
     assert model.contract.weights_precision == INT8_STATIC
-    fp32 = DepthModel.load()
+    fp32 = DepthModel.load(FLOAT32_MODEL_PATH)
     assert fp32.contract.weights_precision == "float32"
     assert model.contract.model_copy(update={"weights_precision": "float32"}) == fp32.contract
 
@@ -73,13 +73,14 @@ def test_quantized_graph_is_int8_qdq_with_standard_operators_only(int8_model):
     assert {domain for domain, _ in ops} == {""}
     assert {op.domain for op in graph.opset_import} <= {"", "ai.onnx"}
     weights = [t for t in graph.graph.initializer if t.data_type == onnx.TensorProto.INT8]
-    assert sum(int(np.prod(t.dims)) for t in weights) > 0.9 * DepthModel.load().contract.params
-    assert int8_model.stat().st_size < DEFAULT_MODEL_PATH.stat().st_size / 2
+    fp32_params = DepthModel.load(FLOAT32_MODEL_PATH).contract.params
+    assert sum(int(np.prod(t.dims)) for t in weights) > 0.9 * fp32_params
+    assert int8_model.stat().st_size < FLOAT32_MODEL_PATH.stat().st_size / 2
 
 
 def test_int8_inverse_depth_agrees_with_fp32_on_held_out_image(int8_model, held_out_image):
     fx_px = 0.6 * held_out_image.shape[1]
-    ref = DepthModel.load().predict_inv_depth(held_out_image, fx_px).inv_depth_per_m
+    ref = DepthModel.load(FLOAT32_MODEL_PATH).predict_inv_depth(held_out_image, fx_px).inv_depth_per_m
     got = DepthModel.load(int8_model).predict_inv_depth(held_out_image, fx_px).inv_depth_per_m
     assert got.shape == ref.shape and np.all(got > 0)
     log_ratio = np.abs(np.log(got.astype(np.float64) / ref))
@@ -87,7 +88,7 @@ def test_int8_inverse_depth_agrees_with_fp32_on_held_out_image(int8_model, held_
 
 
 def test_compare_models_is_zero_for_a_model_against_itself_and_small_for_int8(int8_model, held_out_image):
-    fp32 = DepthModel.load()
+    fp32 = DepthModel.load(FLOAT32_MODEL_PATH)
     same = compare_models(fp32, fp32, [held_out_image, held_out_image[::-1]])
     assert same.n_images == 2 and same.max == 0.0
     int8 = compare_models(fp32, DepthModel.load(int8_model), [held_out_image])
@@ -97,7 +98,7 @@ def test_compare_models_is_zero_for_a_model_against_itself_and_small_for_int8(in
 
 
 def test_calibration_reader_preprocesses_files_and_arrays_like_inference(calib_dir):
-    model = DepthModel.load()
+    model = DepthModel.load(FLOAT32_MODEL_PATH)
     path = find_images([calib_dir])[0]
     image = load_image(path, color=False)
     reader = _CalibrationReader(model, [path, image, np.dstack([image] * 3)])
@@ -119,7 +120,7 @@ def test_unknown_weights_precision_is_refused(int8_model, tmp_path, value):
 
 
 def test_contract_without_weights_precision_key_is_float32():
-    meta = DepthModel.load().contract.to_metadata()
+    meta = DepthModel.load(FLOAT32_MODEL_PATH).contract.to_metadata()
     del meta["weights_precision"]  # a model exported before the key existed
     assert ModelContract.from_metadata(meta).weights_precision == "float32"
 
@@ -128,12 +129,14 @@ def test_quantize_refuses_int8_source_empty_calibration_and_unreadable_image(int
     out = tmp_path / "out.onnx"
     with pytest.raises(DepthModelError, match="already int8-static"):
         quantize_model(int8_model, out, [held_out_image])
+    with pytest.raises(DepthModelError, match="already int8-static.*FLOAT32_MODEL_PATH"):
+        quantize_model(DEFAULT_MODEL_PATH, out, [held_out_image])  # the shipped default is the int8 copy
     with pytest.raises(DepthModelError, match="at least one calibration image"):
-        quantize_model(DEFAULT_MODEL_PATH, out, [])
+        quantize_model(FLOAT32_MODEL_PATH, out, [])
     broken = tmp_path / "broken.png"
     broken.write_bytes(b"not a png")
     with pytest.raises(DatasetError, match="broken.png.*cannot read image"):
-        quantize_model(DEFAULT_MODEL_PATH, out, [held_out_image, broken])
+        quantize_model(FLOAT32_MODEL_PATH, out, [held_out_image, broken])
     assert not out.exists()
 
 
@@ -164,7 +167,7 @@ def test_find_images_layouts_stride_and_cap(tmp_path):
 def test_cli_quantize_writes_a_loadable_model(calib_dir, synth_sequence, tmp_path, capsys):
     out = tmp_path / "cli_int8.onnx"
     held_out = synth_sequence(8, seed=9) / "image_0" / "000004.png"
-    assert main(["quantize", str(DEFAULT_MODEL_PATH), "--calib", str(calib_dir), "--max-images", "2",
+    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib", str(calib_dir), "--max-images", "2",
                  "--out", str(out), "--check", str(held_out)]) == 0
     printed = capsys.readouterr().out
     assert "int8-static" in printed and "int8 vs float32 on 1 images: |log(d_int8 / d_fp32)| median" in printed
@@ -177,7 +180,7 @@ def test_cli_quantize_refuses_a_folder_without_images(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     out = tmp_path / "never.onnx"
-    assert main(["quantize", str(DEFAULT_MODEL_PATH), "--calib", str(empty), "--out", str(out)]) == 1
+    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib", str(empty), "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert str(empty) in err and "holds no image" in err and "KITTI sequence folder" in err
     assert not out.exists()

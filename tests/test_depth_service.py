@@ -122,6 +122,8 @@ def test_health_ready_and_model_contract(client, model):
     contract = client.get("/v1/model").json()
     assert contract == model.contract.model_dump(mode="json")
     assert ready.json()["model_id"] == contract["model_id"]
+    # with no model named the service runs the shipped default, the int8 copy of the network
+    assert ready.json()["weights_precision"] == contract["weights_precision"] == "int8-static"
 
 
 def test_json_answer_matches_in_process_model_and_metric_formula(client, model):

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 from fastapi import FastAPI
 
-from metricslam.depth import DepthModel
+from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel
 
 from .admission import AdmissionGate
 from .errors import install_error_handlers
@@ -58,9 +58,10 @@ def _load_model(state: ServiceState) -> None:
         return
     c = model.contract
     log.info(
-        "depth model %s loaded: input %dx%d -> output %dx%d, baseline %.4f m, %d params, commit %s",
-        c.model_id, c.input_width, c.input_height, c.output_width, c.output_height,
-        c.baseline_m, c.params, c.training_commit,
+        "depth model %s (%s weights, %s) loaded: input %dx%d -> output %dx%d, baseline %.4f m, "
+        "%d params, commit %s",
+        c.model_id, c.weights_precision, s.model_path or DEFAULT_MODEL_PATH, c.input_width, c.input_height,
+        c.output_width, c.output_height, c.baseline_m, c.params, c.training_commit,
     )
     state.pipeline = DepthPipeline(model, s.max_image_pixels, state.metrics)
     state.metrics.model_loaded.set(1)

@@ -275,7 +275,8 @@ async def healthz() -> Health:
 async def readyz(request: Request) -> JSONResponse:
     state = request.app.state.depth
     if state.pipeline is not None:
-        return JSONResponse(Ready(ready=True, model_id=state.pipeline.model.contract.model_id).model_dump())
+        c = state.pipeline.model.contract
+        return JSONResponse(Ready(ready=True, model_id=c.model_id, weights_precision=c.weights_precision).model_dump())
     detail = f"model failed to load: {state.load_error}" if state.load_error else "model is loading"
     return JSONResponse(
         Ready(ready=False, detail=detail).model_dump(),

@@ -96,4 +96,7 @@ class Ready(_Out):
 
     ready: bool
     model_id: str | None = None
+    weights_precision: str | None = Field(
+        None, description="'int8-static' (the shipped default) or 'float32'; the same network either way"
+    )
     detail: str | None = None

@@ -25,7 +25,7 @@ def serve(settings: DepthServiceSettings) -> None:
         raise ConfigError(
             f"depth model {settings.model_path} does not exist: pass --model PATH (or "
             "DEPTH_MODEL_PATH) pointing at an ONNX file exported by metricslam, or leave it unset "
-            "for the shipped model"
+            "for the shipped int8 model"
         )
     config = uvicorn.Config(
         create_app(settings),

@@ -35,7 +35,8 @@ class DepthServiceSettings(BaseSettings):
     host: str = Field("127.0.0.1", description="interface to bind (0.0.0.0 for all)")
     port: int = Field(8100, ge=0, le=65535, description="TCP port (0 = any free port)")
     model_path: Path | None = Field(
-        None, description="ONNX model file; None = the model shipped inside metricslam"
+        None, description="ONNX model file; None = the int8 model shipped inside metricslam "
+        "(metricslam.depth.DEFAULT_MODEL_PATH; the float32 one is FLOAT32_MODEL_PATH)"
     )
     # Measured on the 2-core dev machine: two single-threaded requests in parallel beat one
     # two-threaded request (decode/resize/encode do not parallelise inside one request).

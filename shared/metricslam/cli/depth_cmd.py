@@ -16,7 +16,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--fx", type=float, required=True, help="focal length of IMAGE in pixels (at its own width)")
     p.add_argument("--out", required=True, help="output .npy: (h, w) float32 depth in metres")
     p.add_argument("--png", help="optional coloured visualization (inverse depth, near = bright)")
-    p.add_argument("--model", help="ONNX model (default: the shipped depth_l3.onnx)")
+    p.add_argument("--model", help="ONNX model (default: the shipped int8 depth_l3_int8.onnx; its float32 "
+                                   "source depth_l3.onnx lies next to it in metricslam/models/)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads (default 1)")
     p.set_defaults(func=run)
     return p

@@ -9,7 +9,7 @@ Calibration images must be TRAINING images of the model (for the shipped models:
 01/03 and runs/synth_train worlds). Never calibrate on an evaluation set (KITTI 06,
 kitti_raw_lidar): that leaks the test images into the model.
 
-Example (the shipped depth_l3_int8.onnx)::
+Example (the shipped depth_l3_int8.onnx, the default model since it runs ~2x faster)::
 
     metricslam quantize shared/metricslam/models/depth_l3.onnx \\
         --calib ../shared/data/kitti_odometry/sequences/01 \\
@@ -31,7 +31,8 @@ EVALUATION_MARKERS = ("kitti_raw_lidar", "sequences/06")
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("quantize", help="static int8 copy of a depth model (~2x faster on CPU)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("model", help="float32 metricslam depth model (ONNX)")
+    p.add_argument("model", help="float32 metricslam depth model (ONNX; the shipped one is "
+                                 "metricslam/models/depth_l3.onnx, not the int8 default)")
     p.add_argument("--calib", action="append", required=True, metavar="DIR_OR_GLOB",
                    help="calibration images, TRAINING data only (never KITTI 06 or kitti_raw_lidar): a "
                         "KITTI-layout sequence folder (its image_0/), a folder of images, an image file or a "

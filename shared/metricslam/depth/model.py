@@ -1,11 +1,19 @@
 """The shipped depth model in onnxruntime (no torch): image -> L3 disparity -> metric inverse depth.
 
+Two copies of the same network ship as package data: :data:`DEFAULT_MODEL_PATH`
+(``depth_l3_int8.onnx``, static int8, ~2x faster on CPU, the default everywhere a model is not
+named) and :data:`FLOAT32_MODEL_PATH` (``depth_l3.onnx``, the float32 export it was quantized
+from; see docs/depth_quantization.md).
+
 Example::
 
-    >>> from metricslam.depth import DepthModel
-    >>> model = DepthModel.load()                      # the shipped depth_l3.onnx
+    >>> from metricslam.depth import DepthModel, FLOAT32_MODEL_PATH
+    >>> model = DepthModel.load()                      # the shipped int8 depth_l3_int8.onnx
+    >>> model.contract.weights_precision
+    'int8-static'
     >>> inv = model.predict_inv_depth(image_u8, fx_px=718.9)
     >>> inv.inv_depth_per_m.shape                      # (32, 64) covering the whole image
+    >>> fp32 = DepthModel.load(FLOAT32_MODEL_PATH)     # the float32 source, same model_id
 """
 
 from __future__ import annotations
@@ -21,8 +29,13 @@ from metricslam.depth.contract import ModelContract
 from metricslam.disparity import inv_depth_from_width_fraction
 from metricslam.errors import DepthModelError, ImageError
 
-#: the model shipped as package data (trained without KITTI odometry 06; see docs/depth_model.md).
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parents[1] / "models" / "depth_l3.onnx"
+_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+#: the float32 network shipped as package data (trained without KITTI odometry 06; see
+#: docs/depth_model.md): the source of the int8 default and the reference for comparisons.
+FLOAT32_MODEL_PATH = _MODELS_DIR / "depth_l3.onnx"
+#: the default model: the static int8 copy of :data:`FLOAT32_MODEL_PATH` (same contract and
+#: ``model_id``, ``weights_precision = "int8-static"``; docs/depth_quantization.md).
+DEFAULT_MODEL_PATH = _MODELS_DIR / "depth_l3_int8.onnx"
 
 
 @dataclass(frozen=True)
@@ -70,10 +83,11 @@ class DepthModel:
 
     @classmethod
     def load(cls, path: str | Path | None = None, threads: int = 1) -> "DepthModel":
-        """Load an ONNX model (default: the shipped one), checking its metadata against the code.
+        """Load an ONNX model (default: the shipped int8 one), checking its metadata against the code.
 
         Args:
-            path: ONNX file; ``None`` for :data:`DEFAULT_MODEL_PATH`.
+            path: ONNX file; ``None`` for :data:`DEFAULT_MODEL_PATH` (int8; pass
+                :data:`FLOAT32_MODEL_PATH` for the float32 network).
             threads: onnxruntime intra-op threads.
         """
         import onnxruntime as ort

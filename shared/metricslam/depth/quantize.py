@@ -256,7 +256,8 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
     source = DepthModel.load(src_path, threads=1)
     if source.contract.weights_precision != "float32":
         raise DepthModelError(f"{src_path} is already {source.contract.weights_precision}: "
-                              "quantize the float32 model it was made from")
+                              "quantize the float32 model it was made from (for the shipped int8 default: "
+                              "metricslam.depth.FLOAT32_MODEL_PATH, models/depth_l3.onnx)")
     images = list(calib_images)
     if not images:
         raise DepthModelError("quantization needs at least one calibration image: pass training images")
