@@ -1,4 +1,6 @@
-# Depth inference service: FastAPI + onnxruntime + the shipped ONNX model. No torch, no gtsam.
+# Depth inference service: FastAPI + onnxruntime + the shipped ONNX models. No torch, no gtsam.
+# Serves the int8 depth_l3_int8.onnx by default; the float32 depth_l3.onnx is installed next to it
+# (DEPTH_MODEL_PATH=/usr/local/lib/python3.11/site-packages/metricslam/models/depth_l3.onnx).
 # Build from the repository root:  docker build -f deploy/depth.Dockerfile -t metricslam-depth .
 FROM python:3.11-slim
 
