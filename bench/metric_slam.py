@@ -62,7 +62,8 @@ def loop_truth(loops: list, gt_path: str, max_dist_m: float = 20.0, max_rot_deg:
     return out
 
 
-def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, preset: str | None) -> None:
+def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, preset: str | None,
+                      model: str | None = None) -> None:
     """``metricslam run`` with loop closure disabled (ablation; same pipeline otherwise)."""
     import numpy as np
     from metricslam.datasets import open_sequence
@@ -73,10 +74,10 @@ def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, p
     from metricslam.trajectory.io import write_kitti_poses
 
     seq = open_sequence(seq_dir)
-    backend = make_backend(seq.camera, use_scale=not no_scale,
+    backend = make_backend(seq.camera, use_scale=not no_scale, model_path=model,
                            config=GraphConfig(loop=LoopConfig(enabled=False),
                                               depth_queue_size=OFFLINE_DEPTH_QUEUE_SIZE))
-    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset or "kitti"), backend=backend)
+    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset), backend=backend)
     t0 = time.perf_counter()
     try:
         for i in range(len(seq)):
@@ -97,8 +98,9 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
     cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats)] + extra
     if not loops:  # same pipeline through this script's in-process driver
         preset = extra[extra.index("--preset") + 1] if "--preset" in extra else None
+        model = extra[extra.index("--model") + 1] if "--model" in extra else "-"
         cmd = [sys.executable, __file__, "--_noloops", seq_dir, str(est), str(stats), str(no_scale),
-               preset or "kitti"]
+               preset or ("synth" if (Path(seq_dir) / "depth_0").is_dir() else "kitti"), model]  # as `run`
     if no_scale and loops:
         cmd.append("--no-scale")
     t0 = time.perf_counter()
@@ -173,8 +175,8 @@ def render_saved(json_paths: list[str], out: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--_noloops":  # internal: the ablation driver in its own process
-        seq_dir, out, stats, no_scale, preset = argv[1:6]
-        run_without_loops(seq_dir, out, stats, no_scale == "True", preset)
+        seq_dir, out, stats, no_scale, preset, model = argv[1:7]
+        run_without_loops(seq_dir, out, stats, no_scale == "True", preset, None if model == "-" else model)
         return 0
     if argv and argv[0] == "--render":  # --render A.json [B.json ...] --out OUT
         k = argv.index("--out")
