@@ -200,11 +200,17 @@ def test_cli_depth_writes_metric_depth(tmp_path, shipped):
     assert main(["depth", str(tmp_path / "missing.png"), "--fx", "700", "--out", str(out)]) == 1
 
 
-def test_cli_depth_on_real_kitti_frame(tmp_path, shared_data):
+def test_cli_depth_on_real_kitti_frame(tmp_path, shared_data, capsys):
     image = shared_data / "kitti_odometry" / "sequences" / "06" / "image_0" / "000000.png"
-    out = tmp_path / "d.npy"
+    out, out_fp32 = tmp_path / "d.npy", tmp_path / "d_fp32.npy"
     assert main(["depth", str(image), "--fx", "707.09", "--out", str(out)]) == 0
-    depth = np.load(out)
+    assert "int8-static" in capsys.readouterr().out  # the default model says what it is
+    assert main(["depth", str(image), "--fx", "707.09", "--out", str(out_fp32), "--model",
+                 str(FLOAT32_MODEL_PATH)]) == 0
+    assert "float32" in capsys.readouterr().out
+    depth, depth_fp32 = np.load(out), np.load(out_fp32)
     assert np.all(np.isfinite(depth)) and np.all(depth > 0)
+    # the int8 default stays close to the float32 network on this held-out frame (~1 % median)
+    assert np.median(np.abs(np.log(depth.astype(np.float64) / depth_fp32))) < 0.05
     metadata = json.loads(DepthModel.load().contract.model_dump_json())
     assert metadata["output_definition"] == "disparity_fraction_of_width"

@@ -57,5 +57,5 @@ def run(args: argparse.Namespace) -> int:
     finite = depth_m[np.isfinite(depth_m)]
     median = float(np.median(finite)) if finite.size else float("nan")
     print(f"{out}: depth {depth_m.shape[0]}x{depth_m.shape[1]} m, median {median:.2f} m "
-          f"(model {model.contract.model_id})")
+          f"(model {model.contract.model_id}, {model.contract.weights_precision})")
     return 0
