@@ -182,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
 
     data = Path(args.data)
     model = DepthModel.load(args.model, threads=1)
-    results = {"model_id": model.contract.model_id, "training_data": model.contract.training_data,
+    results = {"model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
+               "training_data": model.contract.training_data,
                "lidar": evaluate_lidar(model, data / "kitti_raw_lidar", args)}
     rows = [("kitti_raw_lidar (LiDAR)", results["lidar"])]
     if args.stereo_seq:
@@ -197,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         machine = f"{platform.machine()}, {platform.processor() or 'cpu'}, python {platform.python_version()}"
         out.with_suffix(".md").write_text(
             f"# Depth accuracy\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
-            f"Machine: {machine}. Model: `{model.contract.model_id}`, trained on: {model.contract.training_data}.\n"
+            f"Machine: {machine}. Model: `{model.contract.model_id}` ({model.contract.weights_precision}), trained on: {model.contract.training_data}.\n"
             f"Depth range {args.min_depth_m}–{args.max_depth_m} m; flat road = plane {args.camera_height_m} m "
             f"below the camera.\n\n{table}\n\nLiDAR per-frame median ratio: mean "
             f"{results['lidar']['per_frame_median_ratio']['mean']:.3f} ± "
