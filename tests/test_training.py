@@ -84,6 +84,19 @@ def test_supervision_zero_at_target_masked_and_pulls_towards_target():
     assert float(low.grad[..., 10:].sum()) < 0  # gradient descent raises the disparity towards 0.05
 
 
+def test_log_space_supervision_weighs_relative_error_alike_at_every_range():
+    """The same 20 % disparity error costs the same near (d 0.1) and far (d 0.005) in log space;
+    in d_frac space the far one is ~20x cheaper (why the far range was barely taught)."""
+    near_t, far_t = _const(0.1), _const(0.005)
+    near_log = float(supervision(near_t * 1.2, near_t, 0.05, log_space=True))
+    far_log = float(supervision(far_t * 1.2, far_t, 0.05, log_space=True))
+    assert near_log == pytest.approx(far_log, rel=1e-4) and near_log > 0
+    near_lin = float(supervision(near_t * 1.2, near_t, 0.005))
+    far_lin = float(supervision(far_t * 1.2, far_t, 0.005))
+    assert near_lin > 10 * far_lin
+    assert float(supervision(far_t, far_t, 0.05, log_space=True)) == pytest.approx(0.0, abs=1e-9)
+
+
 def test_total_loss_is_lower_at_true_disparity_at_every_scale():
     left, right = _pair()
     bm = _const(SHIFT_PX / W)
