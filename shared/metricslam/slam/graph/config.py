@@ -129,17 +129,3 @@ class GraphConfig(BaseModel):
     min_scale_factors_established: int = Field(default=10, ge=1)
     inline: bool = False
     loop: LoopConfig = LoopConfig()
-
-    @classmethod
-    def preset(cls, name: str) -> GraphConfig:
-        """Per-dataset presets: ``"kitti"`` (car, 10 Hz), ``"synthetic"``, ``"default"``."""
-        from metricslam.errors import ConfigError
-
-        presets = {
-            "default": {},
-            "kitti": {"odom_sigma_log_scale": 0.03, "scale_sigma_log": 0.15},
-            "synthetic": {"odom_sigma_log_scale": 0.03, "scale_sigma_log": 0.1},
-        }
-        if name not in presets:
-            raise ConfigError(f"unknown graph preset {name!r}; choose one of {sorted(presets)}")
-        return cls(**presets[name])
