@@ -111,9 +111,10 @@ def main(argv: list[str] | None = None) -> int:
                                 **network_error(args.seq, model, args.image_step, drift["frames_per_keyframe"])}
     lines = ["| lag (frames) | var of Δ log scale | per frame |", "| --- | --- | --- |"]
     lines += [f"| {r['lag_frames']} | {r['var']:.5f} | {r['var_per_frame']:.2e} |" for r in drift["lags"]]
-    lines += ["", f"VO: {drift['frames']} frames, {drift['keyframes']} keyframes "
-              f"({drift['frames_per_keyframe']:.2f} frames/keyframe) → **odometry log-scale sigma "
-              f"{drift['sigma_log_scale_per_keyframe']:.4f} per keyframe**.", "",
+    vo_line = (f"VO: {drift['frames']} frames, {drift['keyframes']} keyframes "
+               f"({drift['frames_per_keyframe']:.2f} frames/keyframe) → **odometry log-scale sigma "
+               f"{drift['sigma_log_scale_per_keyframe']:.4f} per keyframe**.")
+    lines += ["", vo_line, "",
               "| model | images | mean log(z_true/z_net) | sd | τ (frames) | τ (keyframes) | factor sigma sd·√τ_kf |",
               "| --- | --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {k} (`{v['model_id']}`) | {v['images']} | {v['mean_log_error']:+.4f} | {v['sd_log_error']:.4f} | "
