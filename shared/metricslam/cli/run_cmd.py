@@ -56,6 +56,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="keyframes that may wait for depth (default 256). Offline runs wait "
                         "instead of dropping, so results do not depend on machine load; the live "
                         "service keeps a short queue and drops the oldest")
+    p.add_argument("--config", metavar="FILE.yaml",
+                   help="VO and global-graph parameter overrides (sections 'vo:' and 'graph:'; "
+                        "see metricslam.slam.config_file); checked before any frame is processed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
@@ -75,12 +78,13 @@ def run(args: argparse.Namespace) -> int:
 
     from metricslam.datasets import detect_format, open_sequence
     from metricslam.errors import ConfigError
-    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE, GraphConfig
+    from metricslam.slam.config_file import load_overrides
+    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE
     from metricslam.slam.pipeline import SlamPipeline
     from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
-    from metricslam.slam.vo.config import VOConfig
     from metricslam.trajectory.io import write_kitti_poses
 
+    overrides = load_overrides(args.config)
     seq = open_sequence(args.seq_dir)
     synth = (Path(args.seq_dir) / "depth_0").is_dir()  # `metricslam synth` output
     preset = args.preset or (
@@ -92,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if depth_queue < 1:
         raise ConfigError(f"--depth-queue must be >= 1, got {depth_queue}")
     backend = None
-    history = ScaleHistory(GraphConfig(depth_queue_size=depth_queue))
+    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue))
     if not args.vo_only:
         try:
             from metricslam.slam.backend_factory import make_backend
@@ -102,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         source = None if args.no_scale else RecordingDepthSource(OnnxDepthSource(args.model), history)
         backend = make_backend(seq.camera, use_scale=not args.no_scale, depth_source=source,
                                config=history.graph_config)
-    vo_config = VOConfig.preset(preset)
+    vo_config = overrides.vo_config(preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              vo_config.model_dump())
     pipeline = SlamPipeline(seq.camera, vo_config, backend=backend, scale_history=history)
