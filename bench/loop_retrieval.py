@@ -1,8 +1,8 @@
 """Place-recognition recall of the loop detector's bag-of-words retrieval, offline, per vocabulary.
 
 Every ``--step``-th frame of a rendered or KITTI sequence with revisits is a "keyframe": its ORB
-descriptors are computed exactly as :class:`metricslam.slam.loop.detector.LoopDetector` does
-for retrieval (half-size image, 500 features, 4 levels) and added to a :class:`BowDatabase`;
+descriptors are computed by the detector's own :func:`~metricslam.slam.loop.detector.retrieval_descriptors`
+with the default ``LoopConfig`` (half-size image, 500 features) and added to a :class:`BowDatabase`;
 each keyframe then queries the older ones (the most recent ``--skip`` excluded, as in
 ``LoopConfig.skip_recent_keyframes``). A query "has a true place" when some older keyframe is
 within ``--radius-m`` by ground truth; we report recall@5 (a true place among the 5 candidates
@@ -26,20 +26,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 from machine import describe, write_results
+from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
 from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
 from metricslam.trajectory.io import read_kitti_poses
 
-ONLINE_TRAIN_KEYFRAMES = 12  # LoopConfig.vocabulary_train_keyframes
 
 
-def retrieval_descriptors(path: str, orb: cv2.ORB) -> np.ndarray:
-    """ORB descriptors (N, 32) uint8 of one image as the detector computes them for retrieval."""
+def image_descriptors(path: str, orb: cv2.ORB, config: LoopConfig) -> np.ndarray:
+    """Retrieval descriptors of one image file, computed by the detector's own function."""
     gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise SystemExit(f"cannot read {path}")
-    small = cv2.resize(gray, (gray.shape[1] // 2, gray.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    desc = orb.detectAndCompute(small, None)[1]
-    return desc if desc is not None else np.zeros((0, 32), np.uint8)
+    return retrieval_descriptors(orb, gray, config.image_scale)
 
 
 def recall(vocab: BinaryVocabulary, descs: list[np.ndarray], positions_m: np.ndarray, skip: int,
@@ -73,16 +72,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
 
-    orb = cv2.ORB_create(nfeatures=500, nlevels=4, fastThreshold=12)
+    config = LoopConfig()
+    orb = retrieval_orb(config)
     train_files = [f for g in args.train_glob for f in sorted(glob.glob(g))[:: args.train_stride]]
-    train = [retrieval_descriptors(f, orb) for f in train_files]
+    train = [image_descriptors(f, orb, config) for f in train_files]
     rows = []
     for seq in args.seq:
         files = sorted((seq / "image_0").glob("*.png"))[:: args.step]
         pos = read_kitti_poses(seq / "poses" / "00.txt")[:: args.step, :3, 3][: len(files)]
-        descs = [retrieval_descriptors(str(f), orb) for f in files]
+        descs = [image_descriptors(str(f), orb, config) for f in files]
         for k in args.words:
-            vocabs = {"online, first 12 keyframes": BinaryVocabulary.train(descs[:ONLINE_TRAIN_KEYFRAMES], k)}
+            n_online = config.vocabulary_train_keyframes
+            vocabs = {f"online, first {n_online} keyframes": BinaryVocabulary.train(descs[:n_online], k)}
             if train:
                 vocabs[f"offline, {len(train)} training images"] = BinaryVocabulary.train(train, k)
             for name, vocab in vocabs.items():

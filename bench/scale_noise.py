@@ -60,12 +60,13 @@ def vo_drift(gt_path: Path, est_path: Path, n_keyframes: int) -> dict:
 
 def network_error(seq_dir: Path, model: DepthModel, step: int, frames_per_kf: float) -> dict:
     """Per-image network log scale error, its spread and correlation length (module docstring)."""
-    seq = open_sequence(str(seq_dir))
-    depth_files = sorted((seq_dir / "depth_0").glob("*.png"))
+    seq = open_sequence(str(seq_dir), load_right=False)  # loads depth_0 into Frame.depth_m
     errs = []
     for i in range(0, len(seq), step):
         frame = seq[i]
-        z_true = cv2.imread(str(depth_files[i]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 256.0
+        if frame.depth_m is None:
+            raise SystemExit(f"{seq_dir} has no depth_0/: use a `metricslam synth` drive")
+        z_true = frame.depth_m.astype(np.float64)
         grad = np.hypot(cv2.Sobel(frame.image, cv2.CV_32F, 1, 0), cv2.Sobel(frame.image, cv2.CV_32F, 0, 1))
         v, u = np.nonzero((z_true >= 5.0) & (z_true <= 60.0) & (grad > 40.0))
         if len(u) < 50:

@@ -35,6 +35,7 @@ OUTPUT_DEFINITION = "disparity_fraction_of_width"
 #: weight precisions this code runs: the exported float32 graph, or its static int8 quantization.
 WeightsPrecision = Literal["float32", "int8-static"]
 WEIGHTS_PRECISIONS: tuple[str, ...] = get_args(WeightsPrecision)
+FLOAT32, INT8_STATIC = WEIGHTS_PRECISIONS
 #: metadata keys a model may omit (they take the field's default).
 OPTIONAL_FIELDS: frozenset[str] = frozenset({"weights_precision"})
 
@@ -85,7 +86,7 @@ class ModelContract(BaseModel):
     training_data: str
     training_commit: str
     created: str
-    weights_precision: WeightsPrecision = "float32"
+    weights_precision: WeightsPrecision = FLOAT32
 
     def to_metadata(self) -> dict[str, str]:
         """Flat ``{key: str}`` for ONNX ``metadata_props``."""
@@ -114,7 +115,7 @@ class ModelContract(BaseModel):
                 f"model output_definition is {metadata['output_definition']!r}, this code only understands "
                 f"{OUTPUT_DEFINITION!r}: use a model exported by `metricslam export`"
             )
-        precision = metadata.get("weights_precision", "float32")
+        precision = metadata.get("weights_precision", FLOAT32)
         if precision not in WEIGHTS_PRECISIONS:
             raise DepthModelError(
                 f"model weights_precision is {precision!r}, this code runs only {list(WEIGHTS_PRECISIONS)}: "

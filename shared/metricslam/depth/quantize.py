@@ -43,12 +43,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from metricslam.datasets._common import load_image
-from metricslam.depth.contract import ModelContract
+from metricslam.depth.contract import FLOAT32, INT8_STATIC, ModelContract
 from metricslam.depth.model import DepthModel
 from metricslam.errors import DatasetError, DepthModelError, MetricSlamError
-
-#: metadata value of a model written by :func:`quantize_model`.
-INT8_STATIC = "int8-static"
 
 CalibImage = str | Path | np.ndarray
 #: file suffixes taken as images when a calibration folder is listed.
@@ -179,7 +176,7 @@ def compare_models(reference: DepthModel, candidate: DepthModel, images: Iterabl
     """
     ratios: list[np.ndarray] = []
     for image in images:
-        pixels = image if isinstance(image, np.ndarray) else load_image(Path(image), color=False)
+        pixels = _pixels(image)
         ref = reference.predict_d_frac([pixels])[0].astype(np.float64)
         cand = candidate.predict_d_frac([pixels])[0].astype(np.float64)
         if np.any(ref <= 0) or np.any(cand <= 0):
@@ -190,6 +187,11 @@ def compare_models(reference: DepthModel, candidate: DepthModel, images: Iterabl
     all_ratios = np.concatenate(ratios)
     return Agreement(n_images=len(ratios), median=float(np.median(all_ratios)),
                      p95=float(np.percentile(all_ratios, 95)), max=float(all_ratios.max()))
+
+
+def _pixels(image: CalibImage) -> np.ndarray:
+    """A calibration/check image as pixels: arrays as given, files read as gray."""
+    return image if isinstance(image, np.ndarray) else load_image(Path(image), color=False)
 
 
 def _drop_unused_opsets(model) -> None:
@@ -213,9 +215,8 @@ class _CalibrationReader:
         image = next(self._images, None)
         if image is None:
             return None
-        pixels = image if isinstance(image, np.ndarray) else load_image(Path(image), color=False)
         self.count += 1
-        return {self._model.contract.input_name: self._model.preprocess([pixels])}
+        return {self._model.contract.input_name: self._model.preprocess([_pixels(image)])}
 
 
 def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Iterable[CalibImage],
@@ -254,7 +255,7 @@ def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Ite
     config = config if config is not None else QuantizeConfig()
     src_path, out_path = Path(src_onnx), Path(out_onnx)
     source = DepthModel.load(src_path, threads=1)
-    if source.contract.weights_precision != "float32":
+    if source.contract.weights_precision != FLOAT32:
         raise DepthModelError(f"{src_path} is already {source.contract.weights_precision}: "
                               "quantize the float32 model it was made from (for the shipped int8 default: "
                               "metricslam.depth.FLOAT32_MODEL_PATH, models/depth_l3.onnx)")

@@ -31,6 +31,22 @@ from metricslam.slam.loop.verification import (
 from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
 
 
+def retrieval_orb(config: LoopConfig) -> cv2.ORB:
+    """The ORB detector whose descriptors feed the bag-of-words retrieval."""
+    return cv2.ORB_create(nfeatures=config.n_orb_features, nlevels=4, fastThreshold=12)
+
+
+def retrieval_descriptors(orb: cv2.ORB, gray: np.ndarray, image_scale: float) -> np.ndarray:
+    """Retrieval descriptors (N, 32) uint8 of a gray (H, W) uint8 image. ORB detection costs per
+    pixel, so it runs on the image resized by ``image_scale``; landmark descriptors
+    (verification) stay at full resolution with a single-level ORB (cheap)."""
+    small = gray if image_scale == 1.0 else cv2.resize(
+        gray, (round(gray.shape[1] * image_scale), round(gray.shape[0] * image_scale)),
+        interpolation=cv2.INTER_AREA)
+    _, desc = orb.detectAndCompute(small, None)
+    return desc if desc is not None else np.zeros((0, 32), np.uint8)
+
+
 @dataclass(frozen=True)
 class LoopCandidate:
     """A verified loop: ``S_old_new`` (4, 4) maps the new keyframe's frame/units into the old's;
@@ -50,7 +66,7 @@ class LoopDetector:
     def __init__(self, config: LoopConfig | None = None, seed: int = 0) -> None:
         self.config = config or LoopConfig()
         self._calls = 0
-        self._orb = cv2.ORB_create(nfeatures=self.config.n_orb_features, nlevels=4, fastThreshold=12)
+        self._orb = retrieval_orb(self.config)
         self._orb_landmarks = cv2.ORB_create(nlevels=1)
         self._fast = cv2.FastFeatureDetector_create(threshold=20, nonmaxSuppression=True)
         self._vocab: BinaryVocabulary | None = None
@@ -98,13 +114,7 @@ class LoopDetector:
         if corner_mode:
             self._corners[kf_id] = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
                                                          landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
-        f = self.config.image_scale
-        # retrieval: ORB detection costs per pixel, so it runs on a downscaled image; landmark
-        # descriptors (verification) stay at full resolution with a single-level ORB (cheap)
-        small = gray if f == 1.0 else cv2.resize(
-            gray, (round(gray.shape[1] * f), round(gray.shape[0] * f)), interpolation=cv2.INTER_AREA)
-        _, desc = self._orb.detectAndCompute(small, None)
-        desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
+        desc = retrieval_descriptors(self._orb, gray, self.config.image_scale)
         extra = None
         if self.config.fast_corners > 0:
             kps = self._fast.detect(gray, None)
