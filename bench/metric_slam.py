@@ -62,46 +62,32 @@ def loop_truth(loops: list, gt_path: str, max_dist_m: float = 20.0, max_rot_deg:
     return out
 
 
-def run_without_loops(seq_dir: str, out: str, stats_json: str, no_scale: bool, preset: str | None,
-                      model: str | None = None) -> None:
-    """``metricslam run`` with loop closure disabled (ablation; same pipeline otherwise)."""
-    import numpy as np
-    from metricslam.datasets import open_sequence
-    from metricslam.slam.backend_factory import make_backend
-    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE, GraphConfig, LoopConfig
-    from metricslam.slam.pipeline import SlamPipeline
-    from metricslam.slam.vo.config import VOConfig
-    from metricslam.trajectory.io import write_kitti_poses
+def no_loop_config(workdir: Path, extra: list[str]) -> Path:
+    """A ``metricslam run --config`` file that disables loop closure, on top of the user's
+    own ``--config`` in ``extra`` if there is one (the ablation: same pipeline otherwise)."""
+    import yaml
 
-    seq = open_sequence(seq_dir)
-    backend = make_backend(seq.camera, use_scale=not no_scale, model_path=model,
-                           config=GraphConfig(loop=LoopConfig(enabled=False),
-                                              depth_queue_size=OFFLINE_DEPTH_QUEUE_SIZE))
-    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset), backend=backend)
-    t0 = time.perf_counter()
-    try:
-        for i in range(len(seq)):
-            pipe.process(seq[i])
-    finally:
-        pipe.close()
-    wall = time.perf_counter() - t0
-    write_kitti_poses(out, np.array([e.T_world_cam for e in pipe.trajectory()]))
-    stats = pipe.stats()
-    stats.update({"wall_s": wall, "fps": len(seq) / wall})
-    Path(stats_json).write_text(json.dumps(stats, indent=2, default=float) + "\n")
+    base = {}
+    if "--config" in extra:
+        base = yaml.safe_load(Path(extra[extra.index("--config") + 1]).read_text()) or {}
+    graph = base.setdefault("graph", {}) or {}
+    graph.setdefault("loop", {})["enabled"] = False
+    base["graph"] = graph
+    path = workdir / "no_loops.yaml"
+    path.write_text(yaml.safe_dump(base))
+    return path
 
 
 def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, extra: list[str],
             loops: bool = True) -> dict:
     tag = f"{name}_{'noscale' if no_scale else 'scale'}{'' if loops else '_noloops'}"
     est, stats, metrics = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json", workdir / f"{tag}_eval.json"
+    if not loops:  # the same `metricslam run` with loop closure switched off by its config
+        k = extra.index("--config") if "--config" in extra else None
+        rest = extra if k is None else extra[:k] + extra[k + 2:]
+        extra = rest + ["--config", str(no_loop_config(workdir, extra))]
     cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats)] + extra
-    if not loops:  # same pipeline through this script's in-process driver
-        preset = extra[extra.index("--preset") + 1] if "--preset" in extra else None
-        model = extra[extra.index("--model") + 1] if "--model" in extra else "-"
-        cmd = [sys.executable, __file__, "--_noloops", seq_dir, str(est), str(stats), str(no_scale),
-               preset or ("synth" if (Path(seq_dir) / "depth_0").is_dir() else "kitti"), model]  # as `run`
-    if no_scale and loops:
+    if no_scale:
         cmd.append("--no-scale")
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -119,7 +105,7 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
     n = m.get("n_frames") or s.get("frames")
     path = m.get("path_length_m") or float("nan")
     return {
-        "name": tag, "command": " ".join(cmd[2:] if loops else cmd[1:]), "wall_s": wall, "stats": s, "metrics": m,
+        "name": tag, "command": " ".join(cmd[2:]), "wall_s": wall, "stats": s, "metrics": m,
         "fps_wall": s.get("fps") or (n / wall if n else None),  # run's own frames / s (with depth)
         "ate_pct_of_path": 100.0 * m["ate_rmse_m"] / path if m.get("ate_rmse_m") is not None else None,
         **end_errors(est, gt),
@@ -174,10 +160,6 @@ def render_saved(json_paths: list[str], out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] == "--_noloops":  # internal: the ablation driver in its own process
-        seq_dir, out, stats, no_scale, preset, model = argv[1:7]
-        run_without_loops(seq_dir, out, stats, no_scale == "True", preset, None if model == "-" else model)
-        return 0
     if argv and argv[0] == "--render":  # --render A.json [B.json ...] --out OUT
         k = argv.index("--out")
         render_saved(argv[1:k], Path(argv[k + 1]))
