@@ -1,6 +1,8 @@
 """Metric accuracy of the depth network (onnxruntime), against honest references.
 
-1. ``kitti_raw_lidar`` (never trained on): projected LiDAR depth of the left colour camera.
+1. ``kitti_raw_lidar``: projected LiDAR depth of the left colour camera. Models trained with
+   ``depth_frames`` on part of it (``configs/train_depth_lidar*.yaml``: frames 26-77) must be
+   scored on the rest only: ``--lidar-frames 0:20``.
 2. A KITTI odometry stereo sequence held out of training (default 06): SGBM depth
    (left-right checked, full resolution) on textured pixels.
 
@@ -88,7 +90,8 @@ def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
     cam = seq.camera
     preds, flats, oracles, trues, per_frame = [], [], [], [], []
     grid_hw = (model.contract.output_height, model.contract.output_width)
-    for i in range(0, len(seq), args.frame_step):
+    first, stop = args.lidar_frames
+    for i in range(first, min(stop if stop is not None else len(seq), len(seq)), args.frame_step):
         frame = seq[i]
         if frame.depth_m is None:
             continue
@@ -165,12 +168,23 @@ def _table(rows: list[tuple[str, dict]], slam_min_depth_m: float) -> str:
     return "\n".join(lines)
 
 
+def _frame_range(text: str) -> tuple[int, int | None]:
+    first, _, stop = text.partition(":")
+    try:
+        return int(first or 0), (int(stop) if stop else None)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected FIRST:STOP (e.g. 0:20), got {text!r}") from exc
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default="../shared/data", help="the shared data folder")
     p.add_argument("--model", help="ONNX model (default: shipped)")
     p.add_argument("--stereo-seq", default="06", help="held-out KITTI odometry sequence ('' to skip)")
     p.add_argument("--frame-step", type=int, default=1)
+    p.add_argument("--lidar-frames", type=_frame_range, default=(0, None), metavar="FIRST:STOP",
+                   help="score LiDAR frames FIRST <= i < STOP only (default all; '0:20' is the part "
+                        "configs/train_depth_lidar*.yaml keep out of training)")
     p.add_argument("--min-depth-m", type=float, default=1.0)
     p.add_argument("--max-depth-m", type=float, default=80.0)
     p.add_argument("--camera-height-m", type=float, default=1.65)
@@ -185,7 +199,10 @@ def main(argv: list[str] | None = None) -> int:
     results = {"model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
                "training_data": model.contract.training_data,
                "lidar": evaluate_lidar(model, data / "kitti_raw_lidar", args)}
-    rows = [("kitti_raw_lidar (LiDAR)", results["lidar"])]
+    first, stop = args.lidar_frames
+    lidar_label = "kitti_raw_lidar (LiDAR)" if (first, stop) == (0, None) else \
+        f"kitti_raw_lidar frames {first}..{'end' if stop is None else stop - 1} (LiDAR)"
+    rows = [(lidar_label, results["lidar"])]
     if args.stereo_seq:
         results["stereo"] = evaluate_stereo(model, data / "kitti_odometry" / "sequences" / args.stereo_seq, args)
         rows.append((f"KITTI {args.stereo_seq} (SGBM, textured)", results["stereo"]))

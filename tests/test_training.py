@@ -142,12 +142,75 @@ def test_cache_holds_block_matching_disparity_as_width_fraction(tmp_path):
     assert seq.baseline_m == pytest.approx(0.5)
     cache = build_cache(seq, tmp_path / "c.npz", train_baseline_m=0.5, height=H, width=W, num_disparities=32)
     data = StereoPairs([cache])
-    _, _, bm_left, bm_right, ratio = data[0]
-    assert float(ratio) == pytest.approx(1.0)
+    _, _, bm_left, bm_right, ratio, stereo = data[0]
+    assert float(ratio) == pytest.approx(1.0) and float(stereo) == 1.0
     valid = bm_left[bm_left > 0]
     assert valid.numel() > 0.3 * H * W
     assert float(valid.median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
     assert float(bm_right[bm_right > 0].median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
+
+
+def _write_lidar_folder(root, n: int = 4, h: int = 2 * H, w: int = 2 * W, depth_m: float = 12.5):
+    """KITTI-raw layout: colour images, sparse uint16 depth (metres x 256) on every 4th pixel."""
+    for sub in ("image_02", "depth_02"):
+        (root / sub).mkdir(parents=True)
+    depth = np.zeros((h, w), np.uint16)
+    depth[::4, ::4] = int(depth_m * 256)
+    for i in range(n):
+        gray = (_texture(h, w, seed=10 + i) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "image_02" / f"{i:010d}.png"), np.dstack([gray] * 3))
+        cv2.imwrite(str(root / "depth_02" / f"{i:010d}.png"), depth)
+    (root / "calib.txt").write_text(f"K: 200.0 200.0 {w / 2} {h / 2}\n")
+    return root
+
+
+def test_depth_frames_cache_holds_metric_depth_as_training_rig_disparity(tmp_path):
+    from metricslam_train.data import build_depth_cache
+
+    folder = _write_lidar_folder(tmp_path / "lidar", depth_m=12.5)
+    cache = build_depth_cache(folder, tmp_path / "d.npz", train_baseline_m=0.5, first=1, stop=3, height=H, width=W)
+    data = StereoPairs([cache])
+    assert len(data) == 2  # frames 1 and 2 only: the others stay out for validation
+    left, right, bm_left, bm_right, ratio, stereo = data[0]
+    assert float(stereo) == 0.0 and float(ratio) == 1.0 and float(bm_right.abs().max()) == 0.0
+    # sparse LiDAR (1 pixel in 16) still gives a target in most cells of the half-size map
+    assert float((bm_left > 0).float().mean()) > 0.2
+    assert float(bm_left[bm_left > 0].median()) == pytest.approx(200.0 * 0.5 / (12.5 * 2 * W), rel=1e-3)
+    with pytest.raises(TrainingError, match="no frames"):
+        build_depth_cache(folder, tmp_path / "e.npz", train_baseline_m=0.5, first=9, height=H, width=W)
+
+
+def test_supervision_only_images_get_no_photometric_or_left_right_loss():
+    left, right = _pair()
+    target = _const(SHIFT_PX / W)
+    wrong = [torch.full((1, 2, H >> k, W >> k), 2 * SHIFT_PX / W) for k in range(3, 7)]
+    ratio = torch.ones(1)
+    # a "pair" whose right image is unrelated: only the supervision may see it
+    junk_right = torch.from_numpy(_texture(H, W, seed=99))[None, None]
+    _, stereo_terms = total_loss(wrong, left, junk_right, target, target, ratio, scales=(1, 3))
+    _, mono_terms = total_loss(wrong, left, junk_right, target, target, ratio, scales=(1, 3),
+                               stereo=torch.zeros(1))
+    assert stereo_terms["photo"] > 0.01 and mono_terms["photo"] == 0.0 and mono_terms["lr"] == 0.0
+    assert mono_terms["sup"] > 0.0
+    # in a mixed batch the stereo pair's photometric term is its own, not diluted by the image
+    two = [torch.cat([w] * 2) for w in wrong]
+    _, mixed = total_loss(two, torch.cat([left, left]), torch.cat([right, junk_right]), torch.cat([target] * 2),
+                          torch.cat([target] * 2), torch.ones(2), scales=(1, 3), stereo=torch.tensor([1.0, 0.0]))
+    _, alone = total_loss(wrong, left, right, target, target, ratio, scales=(1, 3))
+    assert mixed["photo"] == pytest.approx(alone["photo"], rel=1e-5)
+
+
+def test_training_mixes_stereo_pairs_and_depth_frames(tmp_path):
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    lidar = _write_lidar_folder(tmp_path / "lidar")
+    cfg = _config(tmp_path, steps=3, batch_size=4, depth_frames=[{"folder": str(lidar), "stop": 2, "repeat": 3}])
+    final = train(cfg, progress=False)
+    meta = torch.load(final, weights_only=False)["meta"]
+    assert "lidar frames 0..2 (2 images with metric depth, supervision only, x3" in meta["training_data"]
+    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(records) == 3 and all(np.isfinite(r["loss"]) for r in records)
 
 
 def _config(tmp_path, **over) -> TrainConfig:

@@ -36,6 +36,23 @@ class LossConfig(BaseModel):
     huber_delta: float = Field(0.005, gt=0)
 
 
+class DepthFramesConfig(BaseModel):
+    """Single images with metric depth (a KITTI-raw layout folder: ``image_02/``, ``depth_02/``
+    uint16 metres x 256, ``calib.txt`` with ``K:``), e.g. projected LiDAR.
+
+    They are supervised only (no right image: no photometric or left-right term). Frames
+    ``first <= i < stop`` are used; keep the others out for validation.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    folder: str
+    first: int = Field(0, ge=0)
+    stop: int | None = Field(None, ge=1)
+    #: how many times the frames are listed (sampling weight against the stereo pairs)
+    repeat: int = Field(1, ge=1)
+
+
 class TrainConfig(BaseModel):
     """Everything that determines a training run.
 
@@ -47,6 +64,8 @@ class TrainConfig(BaseModel):
 
     model_id: str = "pyramid-l3"
     sequences: tuple[str, ...]
+    #: images with metric depth (LiDAR), supervised only; see :class:`DepthFramesConfig`
+    depth_frames: tuple[DepthFramesConfig, ...] = ()
     cache_dir: str = "runs/depth_cache"
     run_dir: str = "runs/depth"
     frame_step: int = Field(1, ge=1)

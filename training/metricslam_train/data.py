@@ -144,12 +144,13 @@ def exact_disparity_pair(depth_left_m: np.ndarray, fx_px: float,
     return d_left, d_right
 
 
-def _resize_sparse(d_frac: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Masked area-resize of a sparse map (0 = invalid): mean of the valid source pixels per cell."""
+def _resize_sparse(d_frac: np.ndarray, height: int, width: int, min_valid_fraction: float = 0.5) -> np.ndarray:
+    """Masked area-resize of a sparse map (0 = invalid): mean of the valid source pixels per cell,
+    0 where at most ``min_valid_fraction`` of the cell is valid (0 keeps every cell with one)."""
     valid = (d_frac > 0).astype(np.float32)
     num = cv2.resize(d_frac * valid, (width, height), interpolation=cv2.INTER_AREA)
     den = cv2.resize(valid, (width, height), interpolation=cv2.INTER_AREA)
-    out = np.where(den > 0.5, num / np.maximum(den, 1e-6), 0.0)
+    out = np.where(den > min_valid_fraction, num / np.maximum(den, 1e-6), 0.0)
     return out.astype(np.float32)
 
 
@@ -194,10 +195,55 @@ def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m
     return out
 
 
+#: a depth-frames cache keeps a target cell when any LiDAR point falls in it (LiDAR covers
+#: ~5-10 % of the pixels, so the stereo caches' "half the cell valid" rule would keep almost none)
+DEPTH_MIN_VALID_FRACTION = 0.0
+
+
+def build_depth_cache(folder: str | Path, out_path: str | Path, train_baseline_m: float, first: int = 0,
+                      stop: int | None = None, height: int = 256, width: int = 512) -> Path:
+    """Cache single images with metric depth (KITTI-raw layout, e.g. projected LiDAR) as
+    supervision-only "pairs": ``right`` = ``left`` (never used: ``stereo`` is False), ``bm_left``
+    = the depth as training-rig ``d_frac = fx·B_train / (depth·W)``, ``bm_right`` = 0.
+
+    Frames ``first <= i < stop`` of the folder; colour images are converted to gray.
+    """
+    from metricslam.datasets.kitti_depth import KittiRawDepth
+    from metricslam.errors import MetricSlamError
+
+    try:
+        seq = KittiRawDepth(folder)
+    except MetricSlamError as exc:
+        raise TrainingError(f"depth_frames folder {folder}: {exc}") from exc
+    indices = list(range(first, min(stop if stop is not None else len(seq), len(seq))))
+    if not indices:
+        raise TrainingError(f"depth_frames folder {folder}: no frames in [{first}, {stop})")
+    n = len(indices)
+    left = np.empty((n, height, width), np.uint8)
+    target = np.empty((n, height, width), np.float16)
+    for k, i in enumerate(indices):
+        frame = seq[i]
+        if frame.depth_m is None:
+            raise TrainingError(f"depth_frames folder {folder}: frame {i} has no depth image")
+        gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
+        w_full = gray.shape[1]
+        d_frac = np.where(frame.depth_m > 0, frame.camera.fx_px * train_baseline_m
+                          / (np.maximum(frame.depth_m, 1e-6) * w_full), 0.0).astype(np.float32)
+        left[k] = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
+        target[k] = _resize_sparse(d_frac, height, width, DEPTH_MIN_VALID_FRACTION)
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, left=left, right=left, bm_left=target, bm_right=np.zeros_like(target),
+                        baseline_ratio=np.float32(1.0), stereo=np.bool_(False), name=Path(folder).name,
+                        fx_px=np.float32(seq.camera.fx_px))
+    return out
+
+
 class StereoPairs(torch.utils.data.Dataset):
     """All pairs of several cache files; items are float tensors in [0, 1] / d_frac.
 
-    Item: ``(left (1,H,W), right (1,H,W), bm_left (1,H,W), bm_right (1,H,W), ratio ())``.
+    Item: ``(left (1,H,W), right (1,H,W), bm_left (1,H,W), bm_right (1,H,W), ratio (), stereo ())``;
+    ``stereo`` is 1.0 for a stereo pair and 0.0 for a supervision-only image (:func:`build_depth_cache`).
     """
 
     def __init__(self, cache_paths: list[str | Path]) -> None:
@@ -209,12 +255,15 @@ class StereoPairs(torch.utils.data.Dataset):
             if not p.is_file():
                 raise TrainingError(f"cache {p} does not exist: build it with `metricslam train` (prepare step)")
             with np.load(p) as z:
-                parts.append({k: z[k] for k in ("left", "right", "bm_left", "bm_right", "baseline_ratio")})
+                part = {k: z[k] for k in ("left", "right", "bm_left", "bm_right", "baseline_ratio")}
+                part["stereo"] = bool(z["stereo"]) if "stereo" in z.files else True
+                parts.append(part)
         self.left = np.concatenate([p["left"] for p in parts])
         self.right = np.concatenate([p["right"] for p in parts])
         self.bm_left = np.concatenate([p["bm_left"] for p in parts])
         self.bm_right = np.concatenate([p["bm_right"] for p in parts])
         self.ratio = np.concatenate([np.full(len(p["left"]), p["baseline_ratio"], np.float32) for p in parts])
+        self.stereo = np.concatenate([np.full(len(p["left"]), p["stereo"], np.float32) for p in parts])
 
     def __len__(self) -> int:
         return len(self.left)
@@ -222,7 +271,7 @@ class StereoPairs(torch.utils.data.Dataset):
     def __getitem__(self, i: int):
         as_t = lambda a, s=1.0: torch.from_numpy(a[i].astype(np.float32) * s)[None]  # noqa: E731
         return (as_t(self.left, 1 / 255), as_t(self.right, 1 / 255), as_t(self.bm_left), as_t(self.bm_right),
-                torch.tensor(self.ratio[i]))
+                torch.tensor(self.ratio[i]), torch.tensor(self.stereo[i]))
 
 
 def augment(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_right: torch.Tensor,

@@ -56,16 +56,30 @@ def ssim_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return ((1 - ssim) / 2).clamp(0, 1)
 
 
-def photometric(image: torch.Tensor, reconstruction: torch.Tensor, alpha: float = 0.85) -> torch.Tensor:
-    """Eq. 4: mean of α·(1−SSIM)/2 + (1−α)·|I − Î|."""
-    return (alpha * ssim_distance(image, reconstruction) + (1 - alpha) * (image - reconstruction).abs()).mean()
+def weighted_mean(per_pixel: torch.Tensor, sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of (B,C,H,W) values; with ``sample_weight`` (B,) the weighted mean of the per-sample
+    means (0 when every weight is 0). Equal weights give the plain mean."""
+    if sample_weight is None:
+        return per_pixel.mean()
+    per_sample = per_pixel.mean(dim=tuple(range(1, per_pixel.dim())))
+    w = sample_weight.to(per_sample.dtype)
+    return (per_sample * w).sum() / w.sum().clamp_min(1e-6)
 
 
-def lr_consistency(d_left: torch.Tensor, d_right: torch.Tensor) -> torch.Tensor:
+def photometric(image: torch.Tensor, reconstruction: torch.Tensor, alpha: float = 0.85,
+                sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 4: mean of α·(1−SSIM)/2 + (1−α)·|I − Î| (``sample_weight``: see :func:`weighted_mean`)."""
+    per_pixel = alpha * ssim_distance(image, reconstruction) + (1 - alpha) * (image - reconstruction).abs()
+    return weighted_mean(per_pixel, sample_weight)
+
+
+def lr_consistency(d_left: torch.Tensor, d_right: torch.Tensor,
+                   sample_weight: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 5: |D_l(u) − D_r(u − D_l(u))| + |D_r(u) − D_l(u + D_r(u))|, mean."""
     right_in_left = warp_horizontal(d_right, -d_left)
     left_in_right = warp_horizontal(d_left, d_right)
-    return (d_left - right_in_left).abs().mean() + (d_right - left_in_right).abs().mean()
+    return (weighted_mean((d_left - right_in_left).abs(), sample_weight)
+            + weighted_mean((d_right - left_in_right).abs(), sample_weight))
 
 
 def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
@@ -81,35 +95,48 @@ def edge_aware_smoothness(disp: torch.Tensor, image: torch.Tensor) -> torch.Tens
     return total
 
 
-def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float, log_space: bool = False
-                ) -> torch.Tensor:
+def supervision(disp: torch.Tensor, target: torch.Tensor, huber_delta: float, log_space: bool = False,
+                per_sample: bool = False) -> torch.Tensor:
     """Eq. 7: Huber(D − B) over pixels where the block-matching target is valid (> 0).
 
     ``log_space`` compares ``log D`` with ``log B`` instead (``huber_delta`` then is a relative
     error, 0.05 = 5 %): every depth counts by its *relative* error, as in the scale factors
     (s = ξ/z, eq. 12) and in abs-rel. In d_frac space a 50 % error at 40 m weighs about as much
     as a 4 % error at 3 m, so far depth is barely taught.
+
+    ``per_sample``: average each sample over its own valid pixels, then over the samples that have
+    any, so a sparse target (LiDAR: ~10 % of the cells) counts as much as a dense one; otherwise
+    all valid pixels of the batch are averaged together.
     """
     valid = target > 0
     if not bool(valid.any()):
         return disp.sum() * 0.0
     if log_space:
-        err = torch.log(disp[valid].clamp_min(1e-5)) - torch.log(target[valid])
-        return F.huber_loss(err, torch.zeros_like(err), delta=huber_delta) / huber_delta
-    return F.huber_loss(disp[valid], target[valid], delta=huber_delta) / huber_delta
+        err = torch.log(disp.clamp_min(1e-5)) - torch.log(target.clamp_min(1e-12))
+    else:
+        err = disp - target
+    per_pixel = F.huber_loss(err, torch.zeros_like(err), delta=huber_delta, reduction="none") / huber_delta
+    if not per_sample:
+        return per_pixel[valid].mean()
+    dims = tuple(range(1, per_pixel.dim()))
+    count = valid.sum(dim=dims)
+    per = (per_pixel * valid).sum(dim=dims) / count.clamp_min(1)
+    has = count > 0
+    return per[has].mean()
 
 
 def _down(x: torch.Tensor, factor: int) -> torch.Tensor:
     return x if factor == 1 else F.avg_pool2d(x, factor)
 
 
-def _down_sparse(target: torch.Tensor, factor: int) -> torch.Tensor:
-    """Mean of the valid (> 0) values per cell; 0 where fewer than half are valid."""
+def _down_sparse(target: torch.Tensor, factor: int, min_valid: float | torch.Tensor = 0.5) -> torch.Tensor:
+    """Mean of the valid (> 0) values per cell; 0 where fewer than ``min_valid`` of the cell are
+    valid (a number, or (B,1,1,1) per sample; a tiny value keeps every cell with one valid value)."""
     if factor == 1:
         return target
     valid = (target > 0).to(target.dtype)
     num, den = F.avg_pool2d(target * valid, factor), F.avg_pool2d(valid, factor)
-    return torch.where(den >= 0.5, num / den.clamp_min(1e-6), torch.zeros_like(num))
+    return torch.where((den >= min_valid) & (den > 0), num / den.clamp_min(1e-6), torch.zeros_like(num))
 
 
 def disparity_pyramid(outputs: list[torch.Tensor], scales: tuple[int, ...], base_hw: tuple[int, int]
@@ -128,10 +155,20 @@ def disparity_pyramid(outputs: list[torch.Tensor], scales: tuple[int, ...], base
 def total_loss(outputs: list[torch.Tensor], left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor,
                bm_right: torch.Tensor, ratio: torch.Tensor, weights: LossWeights = LossWeights(),
                scales: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6), huber_delta: float = 0.005,
-               sup_log_space: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 3 summed over ``scales``. Returns (loss, per-term sums for logging)."""
+               sup_log_space: bool = False, stereo: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 3 summed over ``scales``. Returns (loss, per-term sums for logging).
+
+    ``stereo`` (B,): 1 for a stereo pair, 0 for a supervision-only image (LiDAR depth, no right
+    image): the photometric and left-right terms average over the stereo pairs only, a
+    supervision-only target keeps every coarse cell with one valid value (LiDAR is sparse), and
+    the supervision term averages per sample (``supervision(per_sample=True)``).
+    """
     pyramid = disparity_pyramid(outputs, scales, left.shape[-2:])
     r = ratio.view(-1, 1, 1, 1).to(left.dtype)
+    min_valid: float | torch.Tensor = 0.5
+    if stereo is not None:
+        min_valid = torch.where(stereo.view(-1, 1, 1, 1) > 0, 0.5, 1e-6).to(left.dtype)
     sums = {t: left.new_zeros(()) for t in TERMS}
     for s, disp in pyramid.items():
         f = 2**s
@@ -140,13 +177,15 @@ def total_loss(outputs: list[torch.Tensor], left: torch.Tensor, right: torch.Ten
         dl_pair, dr_pair = dl * r, dr * r
         left_hat = warp_horizontal(ir, -dl_pair)
         right_hat = warp_horizontal(il, dr_pair)
-        sums["photo"] = sums["photo"] + photometric(il, left_hat) + photometric(ir, right_hat)
-        sums["lr"] = sums["lr"] + lr_consistency(dl_pair, dr_pair)
+        sums["photo"] = (sums["photo"] + photometric(il, left_hat, sample_weight=stereo)
+                         + photometric(ir, right_hat, sample_weight=stereo))
+        sums["lr"] = sums["lr"] + lr_consistency(dl_pair, dr_pair, stereo)
         sums["smooth"] = sums["smooth"] + (edge_aware_smoothness(dl, il) + edge_aware_smoothness(dr, ir)) / f
         if weights.sup > 0:
-            bl, br = _down_sparse(bm_left, f), _down_sparse(bm_right, f)
-            sums["sup"] = (sums["sup"] + supervision(dl_pair, bl, huber_delta, sup_log_space)
-                           + supervision(dr_pair, br, huber_delta, sup_log_space))
+            bl, br = _down_sparse(bm_left, f, min_valid), _down_sparse(bm_right, f, min_valid)
+            per_sample = stereo is not None
+            sums["sup"] = (sums["sup"] + supervision(dl_pair, bl, huber_delta, sup_log_space, per_sample)
+                           + supervision(dr_pair, br, huber_delta, sup_log_space, per_sample))
     loss = (weights.photo * sums["photo"] + weights.lr * sums["lr"] + weights.smooth * sums["smooth"]
             + weights.sup * sums["sup"])
     return loss, {t: float(v.detach()) for t, v in sums.items()}

@@ -19,7 +19,7 @@ import yaml
 
 from metricslam.errors import TrainingError
 from metricslam_train.config import TrainConfig
-from metricslam_train.data import StereoPairs, augment, build_cache, read_stereo_sequence
+from metricslam_train.data import StereoPairs, augment, build_cache, build_depth_cache, read_stereo_sequence
 from metricslam_train.export import git_commit
 from metricslam_train.losses import LossWeights, total_loss
 from metricslam_train.network import PyramidDepthNet, count_parameters
@@ -52,6 +52,19 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
             n_pairs += len(seq.left_paths)
         label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
         names.append(f"{label} ({n_pairs} pairs, {entry})")
+    for frames in cfg.depth_frames:
+        stop = "end" if frames.stop is None else frames.stop
+        tag = f"{Path(frames.folder).name}_f{frames.first}-{stop}_{cfg.input_height}x{cfg.input_width}_depth"
+        path = Path(cfg.cache_dir) / f"{tag}.npz"
+        if not path.is_file():
+            log.info("building depth cache %s from %s", path, frames.folder)
+            build_depth_cache(frames.folder, path, cfg.train_baseline_m, frames.first, frames.stop,
+                              cfg.input_height, cfg.input_width)
+        paths.extend([path] * frames.repeat)
+        with np.load(path) as z:
+            n_images = len(z["left"])
+        names.append(f"{Path(frames.folder).name} frames {frames.first}..{stop} ({n_images} images with "
+                     f"metric depth, supervision only, x{frames.repeat}, {frames.folder})")
     return paths, "; ".join(names)
 
 
@@ -143,15 +156,16 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
                 group["lr"] = lr
             idx = rng.choice(len(data), size=min(cfg.batch_size, len(data)), replace=len(data) < cfg.batch_size)
             batch = [data[int(i)] for i in idx]
-            left, right, bm_l, bm_r, ratio = (torch.stack(t) for t in zip(*batch))
+            left, right, bm_l, bm_r, ratio, stereo = (torch.stack(t) for t in zip(*batch))
             a = cfg.augment
             left, right, bm_l, bm_r = augment(left, right, bm_l, bm_r, gen, a.p_flip, a.gamma_range,
                                               a.brightness_range)
-            left, right, bm_l, bm_r, ratio = (t.to(device) for t in (left, right, bm_l, bm_r, ratio))
+            left, right, bm_l, bm_r, ratio, stereo = (t.to(device) for t in (left, right, bm_l, bm_r, ratio, stereo))
             t0 = time.perf_counter()
             outputs = net((left - cfg.norm_mean) / cfg.norm_std)
             loss, terms = total_loss(outputs, left, right, bm_l, bm_r, ratio, weights, cfg.loss.scales,
-                                     cfg.loss.huber_delta, cfg.loss.sup_space == "log")
+                                     cfg.loss.huber_delta, cfg.loss.sup_space == "log",
+                                     stereo if cfg.depth_frames else None)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
