@@ -5,6 +5,7 @@ Example::
     metricslam run ../shared/data/kitti_odometry/sequences/06 --out est06.txt --json stats.json
     metricslam run SEQ --no-scale --out est.txt       # baseline: nothing learned anywhere
     metricslam run SEQ --vo-only --out est.txt        # local VO alone, no global graph
+    metricslam run SEQ --deterministic --out est.txt  # no worker threads: reproducible
 
 Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame. ``--json`` writes
 the run statistics (:meth:`SlamPipeline.stats`: counters, ms per stage, back end) plus the scale
@@ -59,6 +60,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--config", metavar="FILE.yaml",
                    help="VO and global-graph parameter overrides (sections 'vo:' and 'graph:'; "
                         "see metricslam.slam.config_file); checked before any frame is processed")
+    p.add_argument("--deterministic", action="store_true",
+                   help="run bundle adjustment, depth and the global solve in the frame loop "
+                        "instead of worker threads: the same input gives the same trajectory, "
+                        "byte for byte (benchmarks, regression checks); slower, and unlike the "
+                        "live system every keyframe's scale arrives before the next frame")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
@@ -96,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
     if depth_queue < 1:
         raise ConfigError(f"--depth-queue must be >= 1, got {depth_queue}")
     backend = None
-    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue))
+    inline = {"inline": True} if args.deterministic else {}
+    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue, **inline))
     if not args.vo_only:
         try:
             from metricslam.slam.backend_factory import make_backend
@@ -106,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         source = None if args.no_scale else RecordingDepthSource(OnnxDepthSource(args.model), history)
         backend = make_backend(seq.camera, use_scale=not args.no_scale, depth_source=source,
                                config=history.graph_config)
-    vo_config = overrides.vo_config(preset)
+    vo_config = overrides.vo_config(preset, **({"ba_in_background": False} if args.deterministic else {}))
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              vo_config.model_dump())
     pipeline = SlamPipeline(seq.camera, vo_config, backend=backend, scale_history=history)
@@ -124,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     stats.update(pipeline.scale_history())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
                   "fps": n / wall_s if wall_s > 0 else None,
-                  "mode": "vo-only" if args.vo_only else ("no-scale" if args.no_scale else "metric")})
+                  "mode": "vo-only" if args.vo_only else ("no-scale" if args.no_scale else "metric"),
+                  "deterministic": bool(args.deterministic)})
     print(f"{n} frames, {stats['keyframes']} keyframes, {stats['tracking_losses']} tracking "
           f"losses, {stats['fps']:.1f} frames/s (including image loading) -> {args.out}")
     if args.json:

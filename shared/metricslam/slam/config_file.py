@@ -39,9 +39,10 @@ class ConfigOverrides:
     vo: dict[str, Any] = field(default_factory=dict)
     graph: dict[str, Any] = field(default_factory=dict)
 
-    def vo_config(self, preset: str) -> VOConfig:
-        """The ``preset``'s :class:`VOConfig` with the ``vo`` overrides applied."""
-        return VOConfig.preset(preset, **self.vo)
+    def vo_config(self, preset: str, **fixed: Any) -> VOConfig:
+        """The ``preset``'s :class:`VOConfig` with the ``vo`` overrides applied; ``fixed`` (the
+        command line's) wins over the file."""
+        return VOConfig.preset(preset, **{**self.vo, **fixed})
 
     def graph_config(self, **fixed: Any) -> GraphConfig:
         """:class:`GraphConfig` from the ``graph`` overrides; ``fixed`` (e.g. the command line's
