@@ -13,8 +13,8 @@ For every sequence (KITTI layout with ground truth) runs ``metricslam run`` twic
 Then pooled and mean-of-sequences numbers per variant via one ``metricslam eval`` call with
 several ``--gt/--est`` pairs, over all sequences and over those the depth network never saw.
 
-Runs are not deterministic (VO bundle adjustment and the global graph run in their own threads;
-depth requests are dropped when the back end is busy). ``--repeats N`` runs every sequence and
+By default runs are not deterministic (VO bundle adjustment and the global graph run in their own
+threads, as live); ``--run-args --deterministic`` makes them so. ``--repeats N`` runs every sequence and
 mode N times; each cell is then ``mean ± sd`` (sample standard deviation over the N runs; pooled
 numbers are pooled within each repeat, then averaged), and the JSON keeps every run's row
 (``sequences[i].repeats``, ``pooled_repeats``) besides the per-metric ``summary``.
@@ -74,12 +74,16 @@ def _shown(cmd: list[str]) -> str:
     return "metricslam " + " ".join(cmd[len(METRICSLAM):])
 
 
+#: extra ``metricslam run`` arguments for every run (``--run-args``), e.g. ``--deterministic``
+RUN_ARGS: list[str] = []
+
+
 def run_slam(name: str, seq_dir: str, no_scale: bool, workdir: Path, repeat: int | None = None) -> dict:
     """One ``metricslam run``; returns paths, command, stats or the error text. ``repeat``
     (1-based) tags the files of repeated runs."""
     tag = f"{name}_{'noscale' if no_scale else 'metric'}" + (f"_r{repeat}" if repeat else "")
     est, stats = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json"
-    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress"]
+    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress", *RUN_ARGS]
     if no_scale:
         cmd.append("--no-scale")
     proc = _run(cmd)
@@ -272,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="sequences in the depth network's training set (labelled, pooled apart)")
     p.add_argument("--repeats", type=int, default=1, metavar="N",
                    help="run every sequence and mode N times; report mean ± sd (default 1)")
+    p.add_argument("--run-args", default="", metavar="ARGS",
+                   help="extra arguments for every metricslam run, e.g. '--deterministic' (then one "
+                        "repeat is enough: runs are identical) or '--model FILE.onnx'")
     p.add_argument("--note", action="append", default=[], help="a note line for the report")
     p.add_argument("--keep", required=True, help="folder for estimates, stats and eval JSON")
     p.add_argument("--out", required=True, help="write OUT.md and OUT.json")
@@ -279,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         p.error(f"--repeats must be >= 1, got {args.repeats}")
     n_rep = args.repeats
+    RUN_ARGS[:] = shlex.split(args.run_args)
     workdir = Path(args.keep)
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
