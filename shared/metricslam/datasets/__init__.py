@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from metricslam.datasets._common import load_image
 from metricslam.datasets.base import Frame, Sequence
 from metricslam.datasets.euroc import EuRoC
 from metricslam.datasets.kitti import KittiOdometry
@@ -24,7 +25,7 @@ from metricslam.datasets.tum import TumRgbd
 from metricslam.errors import DatasetError
 
 __all__ = ["EuRoC", "Frame", "KittiOdometry", "KittiRawDepth", "Sequence", "TumRgbd",
-           "detect_format", "open_sequence"]
+           "detect_format", "load_image", "open_sequence"]
 
 READERS = {"kitti": KittiOdometry, "kitti_raw_depth": KittiRawDepth, "euroc": EuRoC, "tum": TumRgbd}
 

@@ -42,7 +42,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from metricslam.datasets._common import load_image
+from metricslam.datasets import load_image
 from metricslam.depth.contract import FLOAT32, INT8_STATIC, ModelContract
 from metricslam.depth.model import DepthModel
 from metricslam.errors import DatasetError, DepthModelError, MetricSlamError
