@@ -277,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=1, metavar="N",
                    help="run every sequence and mode N times; report mean ± sd (default 1)")
     p.add_argument("--run-args", default="", metavar="ARGS",
-                   help="extra arguments for every metricslam run, e.g. '--deterministic' (then one "
+                   help="extra arguments for every metricslam run, e.g. --run-args='--deterministic' (then one "
                         "repeat is enough: runs are identical) or '--model FILE.onnx'")
     p.add_argument("--note", action="append", default=[], help="a note line for the report")
     p.add_argument("--keep", required=True, help="folder for estimates, stats and eval JSON")
