@@ -34,7 +34,6 @@ from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
 from metricslam.slam.graph.backend_loops import LoopHandling
 from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.graph.ground import ground_landmarks
 from metricslam.slam.graph.odometry import (
     VoFrameHistory,
     odometry_information,
@@ -226,8 +225,6 @@ class GlobalBackend(LoopHandling):
             "depth_dropped": self._stats["depth_dropped"],
             "corrections": self._stats["corrections"],
             "segment_links": self._stats["segment_links"],
-            "ground_keyframes": self._stats["ground_keyframes"],
-            "ground_fallbacks": self._stats["ground_fallbacks"],
             "epoch_mismatches": self._stats["epoch_mismatches"],
             "graph_rebuilds": self.graph.n_rebuilds,
             "graph_stabilized": self.graph.n_stabilized,
@@ -260,17 +257,7 @@ class GlobalBackend(LoopHandling):
             log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf_id, exc)
             return None, None
         self._depth_ms.append(1e3 * (time.perf_counter() - t0))
-        xi = np.asarray(inv_depth, dtype=float).reshape(-1)
-        if self.config.scale_landmarks == "ground":
-            c = self.config
-            on_ground = ground_landmarks(uv_px, xi, camera, c.ground_max_tilt_deg, c.ground_depth_tol_log,
-                                         c.ground_min_landmarks)
-            if on_ground.any():
-                xi, z = xi[on_ground], z[on_ground]
-                self._stats["ground_keyframes"] += 1
-            else:  # no road in view (or too few landmarks on it): every landmark, as in "all"
-                self._stats["ground_fallbacks"] += 1
-        return scale_measurements(xi, z, self.config), np.asarray(inv_map, dtype=np.float32)
+        return scale_measurements(inv_depth, z, self.config), np.asarray(inv_map, dtype=np.float32)
 
     def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
         """Insert one keyframe (odometry or prior) and queue its loop query. Caller holds the lock."""

@@ -5,8 +5,6 @@ Sigmas are standard deviations in the Sim(3) tangent ``[ω (rad), u (keyframe un
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import BaseModel, ConfigDict, Field
 
 
@@ -85,12 +83,6 @@ class GraphConfig(BaseModel):
             or "per_landmark" (eq. 13 literally); see :mod:`.scale_factor`.
         max_scale_landmarks: at most this many landmarks per keyframe give scale factors
             (the strongest-parallax ones are not known here, so an even subsample).
-        scale_landmarks: which landmarks give scale factors: "all" (the paper) or "ground" (only
-            those on the road plane found by :mod:`.ground` from VO geometry; a keyframe where
-            fewer than ``ground_min_landmarks`` lie on a plane falls back to all).
-        ground_max_tilt_deg / ground_depth_tol_log / ground_min_landmarks: the ground plane's
-            largest tilt from the camera's down axis, the log-depth tolerance for a landmark on
-            it, and the fewest landmarks that make a plane (:func:`.ground.ground_landmarks`).
         min_inv_depth_per_m / max_inv_depth_per_m: network inverse depths outside are unusable.
         loop_sigma_rot_rad / loop_sigma_trans_rel / loop_sigma_log_scale: loop factor sigmas.
         loop_kernel: robust kernel on loop factors ("huber", convex, default: a gated loop must be
@@ -121,10 +113,6 @@ class GraphConfig(BaseModel):
     scale_huber_k: float = Field(default=1.345, gt=0)
     scale_factor_mode: str = Field(default="per_keyframe", pattern="^(per_keyframe|per_landmark)$")
     max_scale_landmarks: int = Field(default=48, gt=0)
-    scale_landmarks: Literal["all", "ground"] = "all"
-    ground_max_tilt_deg: float = Field(default=25.0, gt=0, lt=90)
-    ground_depth_tol_log: float = Field(default=0.1, gt=0)
-    ground_min_landmarks: int = Field(default=12, ge=3)
     min_inv_depth_per_m: float = Field(default=1.0 / 80.0, gt=0)
     max_inv_depth_per_m: float = Field(default=1.0 / 1.5, gt=0)
     loop_sigma_rot_rad: float = Field(default=0.01, gt=0)
