@@ -80,6 +80,7 @@ def test_run_applies_the_vo_overrides(shared_data, tmp_path) -> None:
     assert every_frame > default + 5, (default, every_frame)
 
 
+@pytest.mark.slow
 def test_deterministic_runs_give_the_same_trajectory_byte_for_byte(synth_sequence, tmp_path) -> None:
     """``--deterministic``: BA, depth and the global solve in the frame loop; metric mode."""
     seq = synth_sequence(60)

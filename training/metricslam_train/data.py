@@ -195,8 +195,9 @@ def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m
     return out
 
 
-#: a depth-frames cache keeps a target cell when any LiDAR point falls in it (LiDAR covers
-#: ~5-10 % of the pixels, so the stereo caches' "half the cell valid" rule would keep almost none)
+#: a depth-frames cache keeps a target cell when any LiDAR point falls in it (projected LiDAR
+#: covers a few per cent of the pixels, so the stereo caches' "half the cell valid" rule would
+#: keep almost none)
 DEPTH_MIN_VALID_FRACTION = 0.0
 
 
