@@ -3,9 +3,24 @@
 Separates what the global graph and the warp can do from what the depth network delivers:
 the depth source is replaced by OpenCV SGBM on the rectified stereo pair (metric inverse depth,
 pooled to the network's 32x64 grid by the median of valid disparities per cell). Everything
-else — VO, Sim(3) graph, per-keyframe scale factors, loops, warp — is ``metricslam run``'s
-default. This is NOT the method (it uses the right camera); it is the ceiling the network can
-approach.
+else — VO, Sim(3) graph, per-keyframe scale factors, loops, warp — is ``metricslam run
+--deterministic``'s default (``--live`` for the threaded default). This is NOT the method (it uses
+the right camera); it is the ceiling the network can approach — as far as the stereo pair is right.
+
+Three depth sources per sequence (``--variants``):
+
+* ``legacy`` — the first version: SGBM with 64 disparities (nothing nearer than ~6 m), no
+  left-right check, cells without valid disparities set to 0 (bilinear sampling then blends the
+  0 into neighbouring landmarks' inverse depth, i.e. pushes them away).
+* ``stereo`` — full-resolution SGBM with 128 disparities and a left-right consistency check;
+  cells with fewer than 10 % valid pixels are NaN (samples touching them are dropped).
+* ``stereo_selfcal`` — ``stereo`` plus a disparity offset δ (px) added to every disparity,
+  self-calibrated WITHOUT ground truth from a first, scale-free pass of the same VO: at each
+  keyframe's landmarks the measured disparity must be affine in the VO inverse depth,
+  ``d_j = a_i·ξ_j − δ`` (one slope ``a_i = f·B/s_i`` per keyframe, one shared δ; Huber IRLS).
+  A rectified pair whose calibration is off by a horizontal principal-point shift has such a
+  constant disparity offset, which biases metric depth the more the farther the scene
+  (KITTI 01: see ``bench/results/scale_upper_bound.md``).
 
 Example::
 
@@ -30,16 +45,66 @@ import numpy as np
 from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.backend_factory import make_backend
+from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.pipeline import SlamPipeline
 from metricslam.slam.vo.config import VOConfig
 from metricslam.trajectory.io import write_kitti_poses
 
+VARIANTS = ("legacy", "stereo", "stereo_selfcal")
+
+
+def sgbm_lr_disparity(left: np.ndarray, right: np.ndarray, num_disparities: int = 128,
+                      block_size: int = 7, lr_tol_px: float = 1.0) -> np.ndarray:
+    """Full-resolution left disparity (H, W) float32 px, 0 = invalid, left-right checked.
+
+    The right-view disparity comes from the mirrored, swapped pair; a left pixel is kept when
+    ``|d_l(u) − d_r(u − d_l(u))| ≤ lr_tol_px``.
+    """
+    area = block_size * block_size
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
+                                 P1=8 * area, P2=32 * area, uniquenessRatio=10)
+    d_l = sgbm.compute(left, right).astype(np.float32) / 16.0
+    d_r = sgbm.compute(right[:, ::-1].copy(), left[:, ::-1].copy()).astype(np.float32)[:, ::-1] / 16.0
+    d_l[d_l <= 0] = 0
+    d_r[d_r <= 0] = 0
+    h, w = d_l.shape
+    cols = np.broadcast_to(np.arange(w), (h, w))
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    u_r = np.clip(np.rint(cols - d_l).astype(int), 0, w - 1)
+    ok = (d_l > 0) & (np.abs(d_l - d_r[rows, u_r]) <= lr_tol_px)
+    return np.where(ok, d_l, 0.0).astype(np.float32)
+
+
+def pool_cells(disp_px: np.ndarray, grid_hw: tuple[int, int], min_valid: int, empty: float) -> np.ndarray:
+    """(h, w) median of valid (> 0) disparities per cell; ``empty`` where fewer than ``min_valid``."""
+    h, w = grid_hw
+    H, W = disp_px.shape
+    out = np.full((h, w), empty, np.float32)
+    for i in range(h):
+        for j in range(w):
+            cell = disp_px[i * H // h:(i + 1) * H // h, j * W // w:(j + 1) * W // w]
+            valid = cell[cell > 0]
+            if valid.size >= min_valid:
+                out[i, j] = np.median(valid)
+    return out
+
 
 class StereoDepthSource:
-    """``DepthSource`` from SGBM on the stereo pair (right images registered by image hash)."""
+    """``DepthSource`` from SGBM on the stereo pair (right images registered by image hash).
 
-    def __init__(self, baseline_m: float, grid_hw: tuple[int, int] = (32, 64)) -> None:
+    Args:
+        baseline_m: stereo baseline (m).
+        variant: ``"legacy"`` or ``"stereo"`` (module docstring); ``stereo_selfcal`` is
+            ``"stereo"`` with ``disparity_offset_px``.
+        disparity_offset_px: δ added to every valid disparity (px) before converting to 1/m.
+        grid_hw: output grid (the network's).
+    """
+
+    def __init__(self, baseline_m: float, variant: str = "stereo", disparity_offset_px: float = 0.0,
+                 grid_hw: tuple[int, int] = (32, 64)) -> None:
         self.baseline_m = baseline_m
+        self.variant = variant
+        self.disparity_offset_px = float(disparity_offset_px)
         self.grid_hw = grid_hw
         self.right: dict[str, np.ndarray] = {}
 
@@ -50,66 +115,188 @@ class StereoDepthSource:
     def register(self, left: np.ndarray, right: np.ndarray) -> None:
         self.right[self._key(left)] = right
 
-    def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
+    def disparity(self, image: np.ndarray) -> np.ndarray:
+        """Full-resolution disparity (H, W) px of a registered left image, 0 = invalid, no offset."""
         right = self.right[self._key(image)]
-        sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=7, P1=8 * 49,
-                                     P2=32 * 49, uniquenessRatio=10)
-        disp = sgbm.compute(image, right).astype(np.float32) / 16.0
+        if self.variant == "legacy":
+            sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=7, P1=8 * 49,
+                                         P2=32 * 49, uniquenessRatio=10)
+            disp = sgbm.compute(image, right).astype(np.float32) / 16.0
+            return np.where(disp >= 1.0, disp, 0.0).astype(np.float32)
+        return sgbm_lr_disparity(image, right)
+
+    def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
+        disp = self.disparity(image)
         h, w = self.grid_hw
-        H, W = disp.shape
-        out = np.zeros((h, w), np.float32)
-        for i in range(h):
-            for j in range(w):
-                cell = disp[i * H // h:(i + 1) * H // h, j * W // w:(j + 1) * W // w]
-                valid = cell[cell >= 1.0]
-                out[i, j] = np.median(valid) if valid.size > 10 else 0.0
-        return out / (camera.fx_px * self.baseline_m)
+        if self.variant == "legacy":
+            cells = pool_cells(disp, self.grid_hw, min_valid=11, empty=0.0)
+        else:
+            n_px = (disp.shape[0] // h) * (disp.shape[1] // w)
+            cells = pool_cells(disp, self.grid_hw, min_valid=max(10, n_px // 10), empty=np.nan)
+            cells = cells + self.disparity_offset_px
+        return cells / (camera.fx_px * self.baseline_m)
+
+
+def disparity_at(disp_px: np.ndarray, uv_px: np.ndarray, radius: int = 2, min_valid: int = 3) -> np.ndarray:
+    """(N,) median valid disparity in a (2r+1)² window around each pixel, NaN if too few."""
+    out = np.full(len(uv_px), np.nan)
+    H, W = disp_px.shape
+    for k, (u, v) in enumerate(np.asarray(uv_px, float)):
+        ui, vi = int(round(u)), int(round(v))
+        win = disp_px[max(vi - radius, 0):min(vi + radius + 1, H), max(ui - radius, 0):min(ui + radius + 1, W)]
+        win = win[win > 0]
+        if win.size >= min_valid:
+            out[k] = np.median(win)
+    return out
+
+
+def fit_disparity_offset(per_keyframe: list[tuple[np.ndarray, np.ndarray]], min_landmarks: int = 8,
+                         iterations: int = 30) -> dict:
+    """Shared disparity offset δ from ``d_j = a_i·ξ_j − δ`` over keyframes (Huber IRLS, k = 1.345).
+
+    Args:
+        per_keyframe: per keyframe ``(ξ (M,) VO inverse depth, d (M,) measured disparity px)``.
+
+    Returns:
+        ``{"offset_px": δ, "offset_se_px": its standard error, "keyframes", "landmarks",
+        "residual_scale_px"}``. Scale-free: only the VO's relative structure and the stereo pair.
+    """
+    blocks = []
+    for xi, d in per_keyframe:
+        ok = np.isfinite(xi) & np.isfinite(d) & (xi > 0) & (d > 0)
+        if ok.sum() >= min_landmarks:
+            blocks.append((xi[ok], d[ok]))
+    if not blocks:
+        raise ValueError("no keyframe has enough landmarks with stereo disparity")
+    k_kf = len(blocks)
+    n = sum(len(x) for x, _ in blocks)
+    A = np.zeros((n, k_kf + 1))
+    y = np.zeros(n)
+    o = 0
+    for i, (xi, d) in enumerate(blocks):
+        A[o:o + len(xi), i] = xi
+        A[o:o + len(xi), k_kf] = -1.0
+        y[o:o + len(xi)] = d
+        o += len(xi)
+    w = np.ones(n)
+    for _ in range(iterations):
+        sw = np.sqrt(w)
+        p = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        res = y - A @ p
+        scale = 1.4826 * float(np.median(np.abs(res)))
+        thr = 1.345 * max(scale, 1e-6)
+        w = np.where(np.abs(res) <= thr, 1.0, thr / np.maximum(np.abs(res), 1e-12))
+    cov = scale**2 * np.linalg.pinv((A * w[:, None]).T @ A)
+    return {"offset_px": float(p[k_kf]), "offset_se_px": float(np.sqrt(cov[k_kf, k_kf])),
+            "keyframes": k_kf, "landmarks": int(n), "residual_scale_px": scale}
+
+
+def configs(live: bool) -> tuple[VOConfig, GraphConfig]:
+    if live:
+        return VOConfig.preset("kitti"), GraphConfig()
+    return VOConfig.preset("kitti", ba_in_background=False), GraphConfig(inline=True)
+
+
+def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
+    """Pass 1: the same VO without scale factors; fit δ at its keyframes' landmarks (no GT)."""
+    vo_cfg, graph_cfg = configs(live)
+    backend = make_backend(seq.camera, use_scale=False, config=graph_cfg)
+    keyframes = []
+    forward = backend.on_keyframe_marginalized
+
+    def record(kf):
+        keyframes.append(kf)
+        return forward(kf)
+
+    backend.on_keyframe_marginalized = record
+    pipe = SlamPipeline(seq.camera, vo_cfg, backend=backend)
+    src = StereoDepthSource(seq.baseline_m)
+    for i in range(len(seq)):
+        f = seq[i]
+        src.register(f.image, f.image_right)
+        pipe.process(f)
+    pipe.close()
+    per_kf = []
+    for kf in keyframes:
+        if len(kf.landmarks_inv_depth) == 0:
+            continue
+        d = disparity_at(src.disparity(kf.image), kf.landmarks_uv_px)
+        per_kf.append((np.asarray(kf.landmarks_inv_depth, float), d))
+    return fit_disparity_offset(per_kf)
+
+
+def run_one(seq: KittiOdometry, src: StereoDepthSource, live: bool) -> tuple[np.ndarray, dict, float]:
+    vo_cfg, graph_cfg = configs(live)
+    pipe = SlamPipeline(seq.camera, vo_cfg,
+                        backend=make_backend(seq.camera, use_scale=True, depth_source=src, config=graph_cfg))
+    t0 = time.perf_counter()
+    for i in range(len(seq)):
+        f = seq[i]
+        src.register(f.image, f.image_right)
+        pipe.process(f)
+    pipe.close()
+    wall = time.perf_counter() - t0
+    return np.array([e.T_world_cam for e in pipe.trajectory()]), pipe.stats().get("backend", {}), wall
+
+
+def evaluate(est_path: Path, gt: str) -> dict:
+    out_json = est_path.with_suffix(".eval.json")
+    subprocess.run([sys.executable, "-m", "metricslam.cli.main", "eval", "--gt", gt, "--est", str(est_path),
+                    "--json", str(out_json)], check=True, capture_output=True)
+    return json.loads(out_json.read_text())
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, metavar="NAME=SEQ_DIR:GT.txt")
+    p.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {VARIANTS}")
+    p.add_argument("--live", action="store_true",
+                   help="threaded back end and BA (metricslam run's live default; depth requests "
+                        "may be dropped, results vary run to run)")
     p.add_argument("--out", help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
+    variants = [v for v in args.variants.split(",") if v]
+    if bad := set(variants) - set(VARIANTS):
+        p.error(f"unknown variants {sorted(bad)}; choose from {VARIANTS}")
     rows = []
     work = Path(tempfile.mkdtemp(prefix="scale_bound_"))
     for spec in args.seq:
         name, rest = spec.split("=", 1)
         seq_dir, gt = rest.rsplit(":", 1)
         seq = KittiOdometry(seq_dir, gt)
-        src = StereoDepthSource(seq.baseline_m)
-        pipe = SlamPipeline(seq.camera, VOConfig.preset("kitti"),
-                            backend=make_backend(seq.camera, use_scale=True, depth_source=src))
-        t0 = time.perf_counter()
-        for i in range(len(seq)):
-            f = seq[i]
-            src.register(f.image, f.image_right)
-            pipe.process(f)
-        pipe.close()
-        wall = time.perf_counter() - t0
-        est = work / f"{name}.txt"
-        write_kitti_poses(est, np.array([e.T_world_cam for e in pipe.trajectory()]))
-        out_json = work / f"{name}_eval.json"
-        subprocess.run([sys.executable, "-m", "metricslam.cli.main", "eval", "--gt", gt, "--est", str(est),
-                        "--json", str(out_json)], check=True, capture_output=True)
-        m = json.loads(out_json.read_text())
-        rows.append({"name": name, "metrics": m, "backend": pipe.stats().get("backend", {}),
-                     "fps_incl_sgbm": len(seq) / wall})
-        print(json.dumps({"name": name, "scale_error_pct": m["scale_error_pct"], "ate_rmse_m": m["ate_rmse_m"],
-                          "t_rel_pct": m["t_rel_pct"]}), flush=True)
+        calib = None
+        for variant in variants:
+            offset = 0.0
+            if variant == "stereo_selfcal":
+                calib = calib or self_calibrate(seq, args.live)
+                offset = calib["offset_px"]
+            src = StereoDepthSource(seq.baseline_m, "legacy" if variant == "legacy" else "stereo", offset)
+            traj, backend, wall = run_one(seq, src, args.live)
+            est = work / f"{name}_{variant}.txt"
+            write_kitti_poses(est, traj)
+            m = evaluate(est, gt)
+            rows.append({"name": name, "variant": variant, "disparity_offset_px": offset,
+                         "selfcal": calib if variant == "stereo_selfcal" else None, "metrics": m,
+                         "backend": backend, "fps_incl_sgbm": len(seq) / wall})
+            print(json.dumps({"name": name, "variant": variant, "offset_px": round(offset, 3),
+                              "scale_error_pct": m["scale_error_pct"], "ate_rmse_m": m["ate_rmse_m"],
+                              "t_rel_pct": m["t_rel_pct"]}), flush=True)
     if args.out:
         machine = describe()
         lines = ["# Upper bound: the same SLAM with stereo (SGBM) depth instead of the network", "",
-                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}", "",
-                 "| run | path m | scale err % | ATE SE(3) m | ATE % path | ATE Sim(3) m | t_rel % |",
-                 "| --- | --- | --- | --- | --- | --- | --- |"]
+                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}  ",
+                 f"Mode: {'live (threaded)' if args.live else 'deterministic (inline graph, BA in foreground)'}",
+                 "", "| run | depth source | δ px | path m | scale err % | ATE SE(3) m | ATE % path | ATE Sim(3) m | t_rel % |",
+                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in rows:
             m = r["metrics"]
-            lines.append(f"| {r['name']} (stereo depth) | {m['path_length_m']:.0f} | {m['scale_error_pct']:.2f} | "
-                         f"{m['ate_rmse_m']:.2f} | {100 * m['ate_rmse_m'] / m['path_length_m']:.2f} | "
-                         f"{m['ate_rmse_sim3_m']:.2f} | {m['t_rel_pct']:.2f} |")
-        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
-                      "\n".join(lines) + "\n")
+            off = f"{r['disparity_offset_px']:+.2f} ± {r['selfcal']['offset_se_px']:.2f}" if r["selfcal"] else "0"
+            lines.append(f"| {r['name']} | {r['variant']} | {off} | {m['path_length_m']:.0f} | "
+                         f"{m['scale_error_pct']:.2f} | {m['ate_rmse_m']:.2f} | "
+                         f"{100 * m['ate_rmse_m'] / m['path_length_m']:.2f} | {m['ate_rmse_sim3_m']:.2f} | "
+                         f"{m['t_rel_pct']:.2f} |")
+        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv),
+                                 "live": bool(args.live)}, "\n".join(lines) + "\n")
     return 0
 
 
