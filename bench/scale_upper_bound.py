@@ -17,7 +17,8 @@ Three depth sources per sequence (``--variants``):
 * ``stereo_selfcal`` — ``stereo`` plus a disparity offset δ (px) added to every disparity,
   self-calibrated WITHOUT ground truth from a first, scale-free pass of the same VO: at each
   keyframe's landmarks the measured disparity must be affine in the VO inverse depth,
-  ``d_j = a_i·ξ_j − δ`` (one slope ``a_i = f·B/s_i`` per keyframe, one shared δ; Huber IRLS).
+  ``log ξ_j − log(d_j + δ)`` must be the same for all landmarks of a keyframe (its scale); δ
+  minimizes their pooled robust spread (see :func:`fit_disparity_offset`).
   A rectified pair whose calibration is off by a horizontal principal-point shift has such a
   constant disparity offset, which biases metric depth the more the farther the scene
   (KITTI 01: see ``bench/results/scale_upper_bound.md``).
@@ -41,7 +42,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.backend_factory import make_backend
@@ -142,7 +142,7 @@ def disparity_at(disp_px: np.ndarray, uv_px: np.ndarray, radius: int = 2, min_va
     out = np.full(len(uv_px), np.nan)
     H, W = disp_px.shape
     for k, (u, v) in enumerate(np.asarray(uv_px, float)):
-        ui, vi = int(round(u)), int(round(v))
+        ui, vi = int(np.rint(u)), int(np.rint(v))
         win = disp_px[max(vi - radius, 0):min(vi + radius + 1, H), max(ui - radius, 0):min(ui + radius + 1, W)]
         win = win[win > 0]
         if win.size >= min_valid:
@@ -151,44 +151,97 @@ def disparity_at(disp_px: np.ndarray, uv_px: np.ndarray, radius: int = 2, min_va
 
 
 def fit_disparity_offset(per_keyframe: list[tuple[np.ndarray, np.ndarray]], min_landmarks: int = 8,
-                         iterations: int = 30) -> dict:
-    """Shared disparity offset δ from ``d_j = a_i·ξ_j − δ`` over keyframes (Huber IRLS, k = 1.345).
+                         search_px: tuple[float, float] = (-2.0, 4.0), step_px: float = 0.01) -> dict:
+    """Shared disparity offset δ (px) that makes each keyframe's landmark scales agree (no GT).
+
+    With the right δ every landmark ``j`` of keyframe ``i`` measures the same scale,
+    ``log ξ_j − log(d_j + δ) = const_i``; a wrong δ spreads them depth-dependently (far landmarks,
+    small ``d``, move most). δ minimizes the pooled median absolute deviation of these per-keyframe
+    centred log-ratios (grid search). Scale-free: only the VO's relative structure and the pair.
 
     Args:
         per_keyframe: per keyframe ``(ξ (M,) VO inverse depth, d (M,) measured disparity px)``.
 
     Returns:
-        ``{"offset_px": δ, "offset_se_px": its standard error, "keyframes", "landmarks",
-        "residual_scale_px"}``. Scale-free: only the VO's relative structure and the stereo pair.
+        ``{"offset_px": δ, "mad_log_at_zero", "mad_log_at_offset", "keyframes", "landmarks"}``.
     """
     blocks = []
     for xi, d in per_keyframe:
         ok = np.isfinite(xi) & np.isfinite(d) & (xi > 0) & (d > 0)
         if ok.sum() >= min_landmarks:
-            blocks.append((xi[ok], d[ok]))
+            blocks.append((np.log(xi[ok]), d[ok]))
     if not blocks:
         raise ValueError("no keyframe has enough landmarks with stereo disparity")
-    k_kf = len(blocks)
-    n = sum(len(x) for x, _ in blocks)
-    A = np.zeros((n, k_kf + 1))
-    y = np.zeros(n)
-    o = 0
-    for i, (xi, d) in enumerate(blocks):
-        A[o:o + len(xi), i] = xi
-        A[o:o + len(xi), k_kf] = -1.0
-        y[o:o + len(xi)] = d
-        o += len(xi)
-    w = np.ones(n)
-    for _ in range(iterations):
-        sw = np.sqrt(w)
-        p = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
-        res = y - A @ p
-        scale = 1.4826 * float(np.median(np.abs(res)))
-        thr = 1.345 * max(scale, 1e-6)
-        w = np.where(np.abs(res) <= thr, 1.0, thr / np.maximum(np.abs(res), 1e-12))
-    cov = scale**2 * np.linalg.pinv((A * w[:, None]).T @ A)
-    return {"offset_px": float(p[k_kf]), "offset_se_px": float(np.sqrt(cov[k_kf, k_kf])),
-            "keyframes": k_kf, "landmarks": int(n), "residual_scale_px": scale}
+
+    def spread(delta: float) -> float:
+        res = []
+        for log_xi, d in blocks:
+            r = log_xi - np.log(np.maximum(d + delta, 1e-3))
+            res.append(r - np.median(r))
+        return float(np.median(np.abs(np.concatenate(res))))
+
+    grid = np.arange(search_px[0], search_px[1] + step_px / 2, step_px)
+    costs = np.array([spread(float(g)) for g in grid])
+    best = float(grid[int(np.argmin(costs))])
+    return {"offset_px": best, "mad_log_at_zero": spread(0.0), "mad_log_at_offset": float(costs.min()),
+            "keyframes": len(blocks), "landmarks": int(sum(len(d) for _, d in blocks))}
+
+
+def stereo_check(seq: KittiOdometry, gt_path: str, gap: int = 2, stride: int = 3) -> dict:
+    """EVALUATION ONLY (uses ground truth): is the stereo pair's disparity consistent with GT motion?
+
+    Corners of frame k are tracked (forward-backward LK) to frame k+gap and triangulated with the
+    GT relative pose (metric, independent of the VO); their disparity ``f·B/Z`` is compared with
+    the LR-checked SGBM disparity (5x5 median) at the corner. A constant difference over depth is a
+    rectification/calibration offset of the pair. Also: the fraction of corners whose left-to-right
+    LK match has a negative disparity (impossible for a correctly rectified pair).
+    """
+    cam = seq.camera
+    K = np.array([[cam.fx_px, 0, cam.cx_px], [0, cam.fy_px, cam.cy_px], [0, 0, 1]])
+    fb = cam.fx_px * seq.baseline_m
+    gt = np.loadtxt(gt_path).reshape(-1, 3, 4)
+
+    def T(i: int) -> np.ndarray:
+        return np.vstack([gt[i], [0, 0, 0, 1]])
+
+    lk = {"winSize": (21, 21), "maxLevel": 3}
+    z_gt, d_gt, d_sgbm, d_lk = [], [], [], []
+    for k in range(0, len(seq) - gap, stride):
+        a, b = seq[k], seq[k + gap]
+        p0 = cv2.goodFeaturesToTrack(a.image, 800, 0.01, 8)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(a.image, b.image, p0, None, **lk)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(b.image, a.image, p1, None, **lk)
+        ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(pb - p0, axis=2)[:, 0] < 0.5)
+        x0, x1 = p0[ok, 0].astype(float), p1[ok, 0].astype(float)
+        T_b_a = np.linalg.inv(T(k + gap)) @ T(k)
+        P1 = K @ T_b_a[:3]
+        X = cv2.triangulatePoints(K @ np.eye(3, 4), P1, x0.T, x1.T)
+        X = X[:3] / X[3]
+        xb = P1 @ np.vstack([X, np.ones(X.shape[1])])
+        reproj_px = np.linalg.norm((xb[:2] / xb[2]).T - x1, axis=1)
+        c_b = -T_b_a[:3, :3].T @ T_b_a[:3, 3]
+        r0 = X / np.linalg.norm(X, axis=0)
+        r1 = (X - c_b[:, None]) / np.linalg.norm(X - c_b[:, None], axis=0)
+        parallax_deg = np.degrees(np.arccos(np.clip((r0 * r1).sum(0), -1, 1)))
+        good = (X[2] > 3) & (X[2] < 80) & (reproj_px < 1.0) & (parallax_deg > 2.0)
+        d = disparity_at(sgbm_lr_disparity(a.image, a.image_right), x0[good])
+        z_gt += list(X[2][good]); d_gt += list(fb / X[2][good]); d_sgbm += list(d)
+        q1, st, _ = cv2.calcOpticalFlowPyrLK(a.image, a.image_right, p0, None, winSize=(21, 21), maxLevel=4)
+        qb, st2, _ = cv2.calcOpticalFlowPyrLK(a.image_right, a.image, q1, None, winSize=(21, 21), maxLevel=4)
+        ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(qb - p0, axis=2)[:, 0] < 0.3)
+        d_lk += list((p0 - q1)[ok, 0, 0])
+    z_gt, d_gt, d_sgbm = np.array(z_gt), np.array(d_gt), np.array(d_sgbm)
+    ok = np.isfinite(d_sgbm)
+    bins = {}
+    for lo, hi in ((3, 12), (12, 20), (20, 40), (40, 80)):
+        m = ok & (z_gt >= lo) & (z_gt < hi)
+        if m.sum() >= 5:
+            bins[f"{lo}-{hi} m"] = {"n": int(m.sum()), "d_sgbm_minus_d_gt_px": float(np.median(d_sgbm[m] - d_gt[m])),
+                                    "depth_ratio_sgbm_over_gt": float(np.median(d_gt[m] / d_sgbm[m]))}
+    d_lk = np.array(d_lk)
+    return {"n": int(ok.sum()), "d_sgbm_minus_d_gt_px": float(np.median(d_sgbm[ok] - d_gt[ok])),
+            "depth_ratio_sgbm_over_gt": float(np.median(d_gt[ok] / d_sgbm[ok])), "bins": bins,
+            "lk_negative_disparity_fraction": float(np.mean(d_lk < 0))}
 
 
 def configs(live: bool) -> tuple[VOConfig, GraphConfig]:
@@ -258,13 +311,16 @@ def main(argv: list[str] | None = None) -> int:
     variants = [v for v in args.variants.split(",") if v]
     if bad := set(variants) - set(VARIANTS):
         p.error(f"unknown variants {sorted(bad)}; choose from {VARIANTS}")
-    rows = []
+    rows, checks = [], {}
     work = Path(tempfile.mkdtemp(prefix="scale_bound_"))
     for spec in args.seq:
         name, rest = spec.split("=", 1)
         seq_dir, gt = rest.rsplit(":", 1)
         seq = KittiOdometry(seq_dir, gt)
         calib = None
+        checks[name] = stereo_check(seq, gt)
+        print(json.dumps({"name": name, "stereo_check": {k: v for k, v in checks[name].items() if k != "bins"}}),
+              flush=True)
         for variant in variants:
             offset = 0.0
             if variant == "stereo_selfcal":
@@ -290,13 +346,22 @@ def main(argv: list[str] | None = None) -> int:
                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in rows:
             m = r["metrics"]
-            off = f"{r['disparity_offset_px']:+.2f} ± {r['selfcal']['offset_se_px']:.2f}" if r["selfcal"] else "0"
+            off = (f"{r['disparity_offset_px']:+.2f} (MAD log {r['selfcal']['mad_log_at_zero']:.3f} -> "
+                   f"{r['selfcal']['mad_log_at_offset']:.3f})" if r["selfcal"] else "0")
             lines.append(f"| {r['name']} | {r['variant']} | {off} | {m['path_length_m']:.0f} | "
                          f"{m['scale_error_pct']:.2f} | {m['ate_rmse_m']:.2f} | "
                          f"{100 * m['ate_rmse_m'] / m['path_length_m']:.2f} | {m['ate_rmse_sim3_m']:.2f} | "
                          f"{m['t_rel_pct']:.2f} |")
-        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv),
-                                 "live": bool(args.live)}, "\n".join(lines) + "\n")
+        lines += ["", ("Stereo pair vs ground-truth motion (evaluation only, `stereo_check`: corners "
+                       "triangulated with GT poses 2 frames apart, vs LR-checked SGBM at the corner):"), "",
+                  ("| run | corners | median d_SGBM − d_GT px | median Z_SGBM / Z_GT | per depth bin (Δd px) | "
+                   "LK left→right d < 0 |"), "| --- | --- | --- | --- | --- | --- |"]
+        for name, c in checks.items():
+            per_bin = ", ".join(f"{k}: {v['d_sgbm_minus_d_gt_px']:+.2f} (n {v['n']})" for k, v in c["bins"].items())
+            lines.append(f"| {name} | {c['n']} | {c['d_sgbm_minus_d_gt_px']:+.2f} | {c['depth_ratio_sgbm_over_gt']:.3f} | "
+                         f"{per_bin} | {100 * c['lk_negative_disparity_fraction']:.1f} % |")
+        write_results(args.out, {"rows": rows, "stereo_check": checks, "machine": machine,
+                                 "command": " ".join(sys.argv), "live": bool(args.live)}, "\n".join(lines) + "\n")
     return 0
 
 
