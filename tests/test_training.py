@@ -150,6 +150,22 @@ def test_cache_holds_block_matching_disparity_as_width_fraction(tmp_path):
     assert float(bm_right[bm_right > 0].median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
 
 
+def test_a_measured_disparity_offset_is_removed_before_caching(tmp_path):
+    """A pair whose disparities read 2 px (full resolution) too large caches the true ones."""
+    seq = read_stereo_sequence(_write_kitti_folder(tmp_path / "seq"))  # true shift 2*SHIFT_PX at 2W
+    cache = build_cache(seq, tmp_path / "c.npz", train_baseline_m=0.5, height=H, width=W, num_disparities=32,
+                        disparity_offset_px=2.0)
+    bm_left = StereoPairs([cache])[0][2]
+    assert float(bm_left[bm_left > 0].median()) == pytest.approx((SHIFT_PX - 1) / W, rel=0.05)
+
+
+def test_offsets_for_unknown_sequences_are_refused(tmp_path):
+    from metricslam_train.train import prepare_caches
+
+    with pytest.raises(TrainingError, match="kitti99"):
+        prepare_caches(_config(tmp_path, disparity_offsets_px={"kitti99": -1.8}))
+
+
 def _write_lidar_folder(root, n: int = 4, h: int = 2 * H, w: int = 2 * W, depth_m: float = 12.5):
     """KITTI-raw layout: colour images, sparse uint16 depth (metres x 256) on every 4th pixel."""
     for sub in ("image_02", "depth_02"):

@@ -64,6 +64,11 @@ class TrainConfig(BaseModel):
 
     model_id: str = "pyramid-l3"
     sequences: tuple[str, ...]
+    #: measured disparity offset (observed − true, full-resolution px) of a stereo sequence's pair,
+    #: by sequence name (``kitti01``): the right images are shifted to remove it before caching.
+    #: Measure it on the TRAINING sequence only, e.g. ``bench/scale_upper_bound.py``'s
+    #: ``stereo_check`` (corners triangulated with the sequence's ground-truth motion).
+    disparity_offsets_px: dict[str, float] = Field(default_factory=dict)
     #: images with metric depth (LiDAR), supervised only; see :class:`DepthFramesConfig`
     depth_frames: tuple[DepthFramesConfig, ...] = ()
     cache_dir: str = "runs/depth_cache"

@@ -154,14 +154,30 @@ def _resize_sparse(d_frac: np.ndarray, height: int, width: int, min_valid_fracti
     return out.astype(np.float32)
 
 
+def correct_disparity_offset(right: np.ndarray, offset_px: float) -> np.ndarray:
+    """Shift a rectified right image so that a pair whose observed disparities are ``true +
+    offset_px`` (a rectification/calibration error of the pair) shows the true ones:
+    ``right'(u) = right(u − offset_px)`` (bilinear, border replicated)."""
+    if offset_px == 0:
+        return right
+    shift = np.float32([[1, 0, offset_px], [0, 1, 0]])
+    return cv2.warpAffine(right, shift, (right.shape[1], right.shape[0]), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
 def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m: float,
                 height: int = 256, width: int = 512, num_disparities: int = 128,
-                exact_synthetic: bool = False) -> Path:
+                exact_synthetic: bool = False, disparity_offset_px: float = 0.0) -> Path:
     """Write the compact training cache of one sequence (see module docstring).
 
     ``exact_synthetic``: a sequence with ``depth_paths`` (rendered) is supervised with its exact
     disparity (:func:`exact_disparity_pair`) instead of SGBM — dense, also on untextured surfaces
     (truck sides, walls) where block matching has nothing to match.
+
+    ``disparity_offset_px``: the pair's measured disparity offset (observed − true, full-resolution
+    pixels; ``TrainConfig.disparity_offsets_px``); the right image is shifted by it
+    (:func:`correct_disparity_offset`) before block matching and caching, so the SGBM labels and
+    the photometric terms both see the corrected pair.
     """
     from tqdm import tqdm
 
@@ -173,7 +189,8 @@ def build_cache(sequence: StereoSequence, out_path: str | Path, train_baseline_m
     bm_left = np.empty((n, height, width), np.float16)
     bm_right = np.empty((n, height, width), np.float16)
     for i in tqdm(range(n), desc=f"cache {sequence.name}", leave=False):
-        full_l, full_r = read_gray(sequence.left_paths[i]), read_gray(sequence.right_paths[i])
+        full_l = read_gray(sequence.left_paths[i])
+        full_r = correct_disparity_offset(read_gray(sequence.right_paths[i]), disparity_offset_px)
         if full_l.shape != full_r.shape:
             raise TrainingError(f"{sequence.left_paths[i]} and its right image differ in size")
         w_full = full_l.shape[1]

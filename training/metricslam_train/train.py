@@ -35,23 +35,32 @@ def pick_device(name: str) -> torch.device:
 
 def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
     """Build missing caches; return their paths and a description of the training set."""
-    paths, names = [], []
+    paths, names, seen_names = [], [], set()
     for entry in cfg.sequences:
         folders = expand_sequences(entry)
         n_pairs = 0
         for folder in folders:
             seq = read_stereo_sequence(folder, cfg.frame_step)
+            seen_names.add(seq.name)
             exact = cfg.exact_synthetic_disparity and bool(seq.depth_paths)
-            tag = f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}{'_exact' if exact else ''}"
+            offset_px = float(cfg.disparity_offsets_px.get(seq.name, 0.0))
+            tag = (f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}{'_exact' if exact else ''}"
+                   + (f"_off{offset_px:+.2f}px" if offset_px else ""))
             path = Path(cfg.cache_dir) / f"{tag}.npz"
             if not path.is_file():
                 log.info("building cache %s from %s", path, folder)
                 build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width,
-                            exact_synthetic=exact)
+                            exact_synthetic=exact, disparity_offset_px=offset_px)
             paths.append(path)
             n_pairs += len(seq.left_paths)
         label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
-        names.append(f"{label} ({n_pairs} pairs, {entry})")
+        fixed = f", disparity offset {cfg.disparity_offsets_px[seq.name]:+.2f} px removed" \
+            if len(folders) == 1 and cfg.disparity_offsets_px.get(seq.name) else ""
+        names.append(f"{label} ({n_pairs} pairs{fixed}, {entry})")
+    unknown = set(cfg.disparity_offsets_px) - seen_names
+    if unknown:
+        raise TrainingError(f"disparity_offsets_px names {sorted(unknown)} match no sequence (known: "
+                            f"{sorted(seen_names)})")
     for frames in cfg.depth_frames:
         stop = "end" if frames.stop is None else frames.stop
         tag = f"{Path(frames.folder).name}_f{frames.first}-{stop}_{cfg.input_height}x{cfg.input_width}_depth"
