@@ -61,6 +61,13 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
     if unknown:
         raise TrainingError(f"disparity_offsets_px names {sorted(unknown)} match no sequence (known: "
                             f"{sorted(seen_names)})")
+    depth_paths, depth_names = _depth_frame_caches(cfg)
+    return paths + depth_paths, "; ".join(names + depth_names)
+
+
+def _depth_frame_caches(cfg: TrainConfig) -> tuple[list[Path], list[str]]:
+    """Build missing caches of ``cfg.depth_frames`` (each path listed ``repeat`` times)."""
+    paths, names = [], []
     for frames in cfg.depth_frames:
         stop = "end" if frames.stop is None else frames.stop
         tag = f"{Path(frames.folder).name}_f{frames.first}-{stop}_{cfg.input_height}x{cfg.input_width}_depth"
@@ -74,7 +81,7 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
             n_images = len(z["left"])
         names.append(f"{Path(frames.folder).name} frames {frames.first}..{stop} ({n_images} images with "
                      f"metric depth, supervision only, x{frames.repeat}, {frames.folder})")
-    return paths, "; ".join(names)
+    return paths, names
 
 
 def expand_sequences(entry: str) -> list[Path]:
