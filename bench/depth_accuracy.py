@@ -32,6 +32,7 @@ import numpy as np
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.datasets.kitti_depth import KittiRawDepth
 from metricslam.depth import DepthModel, sample_map
+from metricslam.stereo import block_matching_pair  # the matcher of the training labels
 
 
 def metrics(pred_m: np.ndarray, true_m: np.ndarray) -> dict[str, float]:
@@ -123,8 +124,6 @@ def slam_range(pred_m: np.ndarray, flat_m: np.ndarray, true_m: np.ndarray, min_d
 def sgbm_depth(left: np.ndarray, right: np.ndarray, fx_px: float, baseline_m: float,
                texture_min: float) -> np.ndarray:
     """Full-res SGBM depth (m), 0 where invalid, untextured, or failing the left-right check."""
-    from metricslam_train.data import block_matching_pair  # same matcher as the training supervision
-
     d_left, _ = block_matching_pair(left, right)
     gx = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3)

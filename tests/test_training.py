@@ -298,7 +298,8 @@ def test_exact_synthetic_disparity_agrees_with_block_matching_on_a_render(tmp_pa
     """The exact left/right disparities of a rendered pair (from its depth_0) match SGBM where
     SGBM is valid, to a fraction of a pixel, and cover more of the image than SGBM does."""
     from metricslam.synth import generate_sequence
-    from metricslam_train.data import block_matching_pair, exact_disparity_pair
+    from metricslam.stereo import block_matching_pair
+    from metricslam_train.data import exact_disparity_pair
 
     root = tmp_path / "synth"
     generate_sequence(root, 2, seed=21, path="straight", size=(620, 188))

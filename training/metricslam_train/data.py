@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from metricslam.errors import TrainingError
+from metricslam.stereo import block_matching_pair
 
 
 @dataclass(frozen=True)
@@ -86,37 +87,6 @@ def read_gray(path: Path) -> np.ndarray:
     if image is None:
         raise TrainingError(f"cannot read image {path}")
     return image
-
-
-def sgbm_matcher(num_disparities: int = 128, block_size: int = 5) -> cv2.StereoSGBM:
-    """OpenCV semi-global block matcher with settings that suit KITTI-like street scenes."""
-    return cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
-        P1=8 * block_size * block_size, P2=32 * block_size * block_size, disp12MaxDiff=1,
-        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-
-
-def block_matching_pair(left: np.ndarray, right: np.ndarray, num_disparities: int = 128,
-                        lr_tol_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Full-resolution SGBM disparities (px, float32, 0 = invalid) for the left and right images.
-
-    The right map comes from the mirrored, swapped pair; both are cross-checked
-    (``|d_l(u) − d_r(u − d_l(u))| ≤ lr_tol_px``).
-    """
-    matcher = sgbm_matcher(num_disparities)
-    d_left = matcher.compute(left, right).astype(np.float32) / 16.0
-    d_right = matcher.compute(right[:, ::-1].copy(), left[:, ::-1].copy()).astype(np.float32)[:, ::-1] / 16.0
-    d_left[d_left <= 0] = 0
-    d_right[d_right <= 0] = 0
-    h, w = left.shape
-    cols = np.arange(w)[None, :].repeat(h, 0)
-    rows = np.arange(h)[:, None].repeat(w, 1)
-    u_r = np.clip(np.round(cols - d_left).astype(int), 0, w - 1)
-    ok_l = (d_left > 0) & (np.abs(d_left - d_right[rows, u_r]) <= lr_tol_px)
-    u_l = np.clip(np.round(cols + d_right).astype(int), 0, w - 1)
-    ok_r = (d_right > 0) & (np.abs(d_right - d_left[rows, u_l]) <= lr_tol_px)
-    return np.where(ok_l, d_left, 0).astype(np.float32), np.where(ok_r, d_right, 0).astype(np.float32)
 
 
 def exact_disparity_pair(depth_left_m: np.ndarray, fx_px: float,
@@ -221,7 +191,8 @@ DEPTH_MIN_VALID_FRACTION = 0.0
 def build_depth_cache(folder: str | Path, out_path: str | Path, train_baseline_m: float, first: int = 0,
                       stop: int | None = None, height: int = 256, width: int = 512) -> Path:
     """Cache single images with metric depth (KITTI-raw layout, e.g. projected LiDAR) as
-    supervision-only "pairs": ``right`` = ``left`` (never used: ``stereo`` is False), ``bm_left``
+    supervision-only "pairs": no ``right`` (:class:`StereoPairs` serves ``left`` in its place; never
+    used, ``stereo`` is False), ``bm_left``
     = the depth as training-rig ``d_frac = fx·B_train / (depth·W)``, ``bm_right`` = 0.
 
     Frames ``first <= i < stop`` of the folder; colour images are converted to gray.
@@ -251,7 +222,7 @@ def build_depth_cache(folder: str | Path, out_path: str | Path, train_baseline_m
         target[k] = _resize_sparse(d_frac, height, width, DEPTH_MIN_VALID_FRACTION)
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, left=left, right=left, bm_left=target, bm_right=np.zeros_like(target),
+    np.savez_compressed(out, left=left, bm_left=target, bm_right=np.zeros_like(target),
                         baseline_ratio=np.float32(1.0), stereo=np.bool_(False), name=Path(folder).name,
                         fx_px=np.float32(seq.camera.fx_px))
     return out
@@ -273,7 +244,8 @@ class StereoPairs(torch.utils.data.Dataset):
             if not p.is_file():
                 raise TrainingError(f"cache {p} does not exist: build it with `metricslam train` (prepare step)")
             with np.load(p) as z:
-                part = {k: z[k] for k in ("left", "right", "bm_left", "bm_right", "baseline_ratio")}
+                part = {k: z[k] for k in ("left", "bm_left", "bm_right", "baseline_ratio")}
+                part["right"] = z["right"] if "right" in z.files else part["left"]  # depth frames: none
                 part["stereo"] = bool(z["stereo"]) if "stereo" in z.files else True
                 parts.append(part)
         self.left = np.concatenate([p["left"] for p in parts])
