@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
 
     from metricslam.datasets import detect_format, open_sequence
     from metricslam.errors import ConfigError
-    from metricslam.slam.config_file import load_overrides
+    from metricslam.slam.config_file import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, load_overrides
     from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE
     from metricslam.slam.pipeline import SlamPipeline
     from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
@@ -102,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
     if depth_queue < 1:
         raise ConfigError(f"--depth-queue must be >= 1, got {depth_queue}")
     backend = None
-    inline = {"inline": True} if args.deterministic else {}
-    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue, **inline))
+    graph_fixed = DETERMINISTIC_GRAPH if args.deterministic else {}
+    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue, **graph_fixed))
     if not args.vo_only:
         try:
             from metricslam.slam.backend_factory import make_backend
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         source = None if args.no_scale else RecordingDepthSource(OnnxDepthSource(args.model), history)
         backend = make_backend(seq.camera, use_scale=not args.no_scale, depth_source=source,
                                config=history.graph_config)
-    vo_config = overrides.vo_config(preset, **({"ba_in_background": False} if args.deterministic else {}))
+    vo_config = overrides.vo_config(preset, **(DETERMINISTIC_VO if args.deterministic else {}))
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              vo_config.model_dump())
     pipeline = SlamPipeline(seq.camera, vo_config, backend=backend, scale_history=history)

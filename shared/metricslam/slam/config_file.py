@@ -30,6 +30,10 @@ from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.vo.config import VOConfig
 
 SECTIONS = ("vo", "graph")
+#: what ``metricslam run --deterministic`` fixes over any file: bundle adjustment, depth and the
+#: global solve run in the frame loop, so the same input gives the same trajectory byte for byte
+DETERMINISTIC_VO: dict[str, Any] = {"ba_in_background": False}
+DETERMINISTIC_GRAPH: dict[str, Any] = {"inline": True}
 
 
 @dataclass(frozen=True)
