@@ -74,16 +74,14 @@ def _shown(cmd: list[str]) -> str:
     return "metricslam " + " ".join(cmd[len(METRICSLAM):])
 
 
-#: extra ``metricslam run`` arguments for every run (``--run-args``), e.g. ``--deterministic``
-RUN_ARGS: list[str] = []
-
-
-def run_slam(name: str, seq_dir: str, no_scale: bool, workdir: Path, repeat: int | None = None) -> dict:
+def run_slam(name: str, seq_dir: str, no_scale: bool, workdir: Path, repeat: int | None = None,
+             run_args: tuple[str, ...] = ()) -> dict:
     """One ``metricslam run``; returns paths, command, stats or the error text. ``repeat``
-    (1-based) tags the files of repeated runs."""
+    (1-based) tags the files of repeated runs; ``run_args`` are extra arguments (``--run-args``,
+    e.g. ``--deterministic``)."""
     tag = f"{name}_{'noscale' if no_scale else 'metric'}" + (f"_r{repeat}" if repeat else "")
     est, stats = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json"
-    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress", *RUN_ARGS]
+    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress", *run_args]
     if no_scale:
         cmd.append("--no-scale")
     proc = _run(cmd)
@@ -226,12 +224,13 @@ def render_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_sequence(name: str, seq_dir: str, gt: str, workdir: Path, repeat: int | None) -> dict:
+def run_sequence(name: str, seq_dir: str, gt: str, workdir: Path, repeat: int | None,
+                 run_args: tuple[str, ...] = ()) -> dict:
     """Both modes once, then the three evaluations: ``{"runs", "eval", "aligned_est"?}``."""
     tag = name + (f"_r{repeat}" if repeat else "")
     out: dict = {"runs": {}, "eval": {}}
     for no_scale in (False, True):
-        r = run_slam(name, seq_dir, no_scale, workdir, repeat)
+        r = run_slam(name, seq_dir, no_scale, workdir, repeat, run_args)
         out["runs"]["noscale" if no_scale else "metric"] = r
         print(f"{tag} {'noscale' if no_scale else 'metric'}: "
               f"{r.get('error', '').splitlines()[-1:] or r['stats'].get('fps')}", flush=True)
@@ -286,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         p.error(f"--repeats must be >= 1, got {args.repeats}")
     n_rep = args.repeats
-    RUN_ARGS[:] = shlex.split(args.run_args)
+    run_args = tuple(shlex.split(args.run_args))
     workdir = Path(args.keep)
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
@@ -298,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         seq_dir, gt = rest.rsplit(":", 1)
         s = {"name": name, "seq_dir": seq_dir, "gt": gt,
              "trained_on": "yes" if name in trained else "no",
-             "repeats": [run_sequence(name, seq_dir, gt, workdir, k if n_rep > 1 else None)
+             "repeats": [run_sequence(name, seq_dir, gt, workdir, k if n_rep > 1 else None, run_args)
                          for k in range(1, n_rep + 1)]}
         s.update(s["repeats"][0])  # runs / eval / aligned_est of the first run (figures use them)
         s["summary"] = {v: summarize([r["eval"][v]["result"] for r in s["repeats"]
