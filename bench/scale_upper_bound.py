@@ -12,7 +12,8 @@ Three depth sources per sequence (``--variants``):
 * ``legacy`` — the first version: SGBM with 64 disparities (nothing nearer than ~6 m), no
   left-right check, cells without valid disparities set to 0 (bilinear sampling then blends the
   0 into neighbouring landmarks' inverse depth, i.e. pushes them away).
-* ``stereo`` — full-resolution SGBM with 128 disparities and a left-right consistency check;
+* ``stereo`` — full-resolution SGBM with 128 disparities and a left-right consistency check
+  (:func:`metricslam.stereo.block_matching_pair`, the matcher of the training labels);
   cells with fewer than 10 % valid pixels are NaN (samples touching them are dropped).
 * ``stereo_selfcal`` — ``stereo`` plus a disparity offset δ (px) added to every disparity,
   self-calibrated WITHOUT ground truth from a first, scale-free pass of the same VO: at each
@@ -45,34 +46,14 @@ import numpy as np
 from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.backend_factory import make_backend
+from metricslam.slam.config_file import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, ConfigOverrides
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.pipeline import SlamPipeline
 from metricslam.slam.vo.config import VOConfig
+from metricslam.stereo import block_matching_pair
 from metricslam.trajectory.io import write_kitti_poses
 
 VARIANTS = ("legacy", "stereo", "stereo_selfcal")
-
-
-def sgbm_lr_disparity(left: np.ndarray, right: np.ndarray, num_disparities: int = 128,
-                      block_size: int = 7, lr_tol_px: float = 1.0) -> np.ndarray:
-    """Full-resolution left disparity (H, W) float32 px, 0 = invalid, left-right checked.
-
-    The right-view disparity comes from the mirrored, swapped pair; a left pixel is kept when
-    ``|d_l(u) − d_r(u − d_l(u))| ≤ lr_tol_px``.
-    """
-    area = block_size * block_size
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
-                                 P1=8 * area, P2=32 * area, uniquenessRatio=10)
-    d_l = sgbm.compute(left, right).astype(np.float32) / 16.0
-    d_r = sgbm.compute(right[:, ::-1].copy(), left[:, ::-1].copy()).astype(np.float32)[:, ::-1] / 16.0
-    d_l[d_l <= 0] = 0
-    d_r[d_r <= 0] = 0
-    h, w = d_l.shape
-    cols = np.broadcast_to(np.arange(w), (h, w))
-    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
-    u_r = np.clip(np.rint(cols - d_l).astype(int), 0, w - 1)
-    ok = (d_l > 0) & (np.abs(d_l - d_r[rows, u_r]) <= lr_tol_px)
-    return np.where(ok, d_l, 0.0).astype(np.float32)
 
 
 def pool_cells(disp_px: np.ndarray, grid_hw: tuple[int, int], min_valid: int, empty: float) -> np.ndarray:
@@ -123,7 +104,7 @@ class StereoDepthSource:
                                          P2=32 * 49, uniquenessRatio=10)
             disp = sgbm.compute(image, right).astype(np.float32) / 16.0
             return np.where(disp >= 1.0, disp, 0.0).astype(np.float32)
-        return sgbm_lr_disparity(image, right)
+        return block_matching_pair(image, right)[0]
 
     def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
         disp = self.disparity(image)
@@ -187,22 +168,23 @@ def fit_disparity_offset(per_keyframe: list[tuple[np.ndarray, np.ndarray]], min_
             "keyframes": len(blocks), "landmarks": int(sum(len(d) for _, d in blocks))}
 
 
-def stereo_check(seq: KittiOdometry, gt_path: str, gap: int = 2, stride: int = 3) -> dict:
+def stereo_check(seq: KittiOdometry, gap: int = 2, stride: int = 3) -> dict:
     """EVALUATION ONLY (uses ground truth): is the stereo pair's disparity consistent with GT motion?
 
     Corners of frame k are tracked (forward-backward LK) to frame k+gap and triangulated with the
     GT relative pose (metric, independent of the VO); their disparity ``f·B/Z`` is compared with
-    the LR-checked SGBM disparity (5x5 median) at the corner. A constant difference over depth is a
+    the LR-checked SGBM disparity (:func:`metricslam.stereo.block_matching_pair`, the matcher of
+    the depth network's training labels; 5x5 median) at the corner. ``seq`` must carry its
+    ground-truth poses. A constant difference over depth is a
     rectification/calibration offset of the pair. Also: the fraction of corners whose left-to-right
     LK match has a negative disparity (impossible for a correctly rectified pair).
     """
     cam = seq.camera
     K = np.array([[cam.fx_px, 0, cam.cx_px], [0, cam.fy_px, cam.cy_px], [0, 0, 1]])
     fb = cam.fx_px * seq.baseline_m
-    gt = np.loadtxt(gt_path).reshape(-1, 3, 4)
-
-    def T(i: int) -> np.ndarray:
-        return np.vstack([gt[i], [0, 0, 0, 1]])
+    T_world_cam = seq.T_world_cam_gt
+    if T_world_cam is None:
+        raise ValueError(f"{seq.name}: stereo_check needs the ground-truth poses")
 
     lk = {"winSize": (21, 21), "maxLevel": 3}
     z_gt, d_gt, d_sgbm, d_lk = [], [], [], []
@@ -213,7 +195,7 @@ def stereo_check(seq: KittiOdometry, gt_path: str, gap: int = 2, stride: int = 3
         pb, st2, _ = cv2.calcOpticalFlowPyrLK(b.image, a.image, p1, None, **lk)
         ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(pb - p0, axis=2)[:, 0] < 0.5)
         x0, x1 = p0[ok, 0].astype(float), p1[ok, 0].astype(float)
-        T_b_a = np.linalg.inv(T(k + gap)) @ T(k)
+        T_b_a = np.linalg.inv(T_world_cam[k + gap]) @ T_world_cam[k]
         P1 = K @ T_b_a[:3]
         X = cv2.triangulatePoints(K @ np.eye(3, 4), P1, x0.T, x1.T)
         X = X[:3] / X[3]
@@ -224,7 +206,7 @@ def stereo_check(seq: KittiOdometry, gt_path: str, gap: int = 2, stride: int = 3
         r1 = (X - c_b[:, None]) / np.linalg.norm(X - c_b[:, None], axis=0)
         parallax_deg = np.degrees(np.arccos(np.clip((r0 * r1).sum(0), -1, 1)))
         good = (X[2] > 3) & (X[2] < 80) & (reproj_px < 1.0) & (parallax_deg > 2.0)
-        d = disparity_at(sgbm_lr_disparity(a.image, a.image_right), x0[good])
+        d = disparity_at(block_matching_pair(a.image, a.image_right)[0], x0[good])
         z_gt += list(X[2][good]); d_gt += list(fb / X[2][good]); d_sgbm += list(d)
         q1, st, _ = cv2.calcOpticalFlowPyrLK(a.image, a.image_right, p0, None, winSize=(21, 21), maxLevel=4)
         qb, st2, _ = cv2.calcOpticalFlowPyrLK(a.image_right, a.image, q1, None, winSize=(21, 21), maxLevel=4)
@@ -245,9 +227,11 @@ def stereo_check(seq: KittiOdometry, gt_path: str, gap: int = 2, stride: int = 3
 
 
 def configs(live: bool) -> tuple[VOConfig, GraphConfig]:
+    """The KITTI preset and graph defaults, as ``metricslam run [--deterministic]`` builds them."""
+    overrides = ConfigOverrides()
     if live:
-        return VOConfig.preset("kitti"), GraphConfig()
-    return VOConfig.preset("kitti", ba_in_background=False), GraphConfig(inline=True)
+        return overrides.vo_config("kitti"), overrides.graph_config()
+    return overrides.vo_config("kitti", **DETERMINISTIC_VO), overrides.graph_config(**DETERMINISTIC_GRAPH)
 
 
 def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
@@ -318,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         seq_dir, gt = rest.rsplit(":", 1)
         seq = KittiOdometry(seq_dir, gt)
         calib = None
-        checks[name] = stereo_check(seq, gt)
+        checks[name] = stereo_check(seq)
         print(json.dumps({"name": name, "stereo_check": {k: v for k, v in checks[name].items() if k != "bins"}}),
               flush=True)
         for variant in variants:
