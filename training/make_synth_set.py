@@ -11,6 +11,7 @@ traffic; this set uses seeds from ``--seed0`` (default 2000) and never KITTI 00'
 Run from the repository root (the data folder lives beside it)::
 
     python training/make_synth_set.py runs/synth_train --worlds 120 --frames 12
+    python training/make_synth_set.py runs/synth_static --worlds 240 --seed0 3000 --no-traffic
 
 Output: ``OUT/w{seed}/`` KITTI-layout folders that ``metricslam train`` configs list with a glob
 (``runs/synth_train/w*``).
@@ -42,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pose-step", type=int, default=3, help="take every N-th GT pose")
     p.add_argument("--seed0", type=int, default=2000)
     p.add_argument("--poses-dir", default="../shared/data/kitti_gt_poses_full")
+    p.add_argument("--no-traffic", action="store_true",
+                   help="empty roads and no overpasses (the SLAM benchmark worlds' kind); building "
+                        "and parked-car density still vary per world")
     args = p.parse_args(argv)
 
     out = Path(args.out_dir)
@@ -61,8 +65,10 @@ def main(argv: list[str] | None = None) -> int:
         sub = poses[start:start + span:args.pose_step]
         path_file = tmp / f"w{seed}.txt"
         write_kitti_poses(path_file, sub)
-        world = WorldConfig(traffic_per_100m=float(rng.choice([0.0, rng.uniform(3, 25)], p=[0.15, 0.85])),
-                            bridges_per_km=float(rng.choice([0.0, rng.uniform(5, 30)], p=[0.5, 0.5])),
+        traffic = float(rng.choice([0.0, rng.uniform(3, 25)], p=[0.15, 0.85]))
+        bridges = float(rng.choice([0.0, rng.uniform(5, 30)], p=[0.5, 0.5]))
+        world = WorldConfig(traffic_per_100m=0.0 if args.no_traffic else traffic,
+                            bridges_per_km=0.0 if args.no_traffic else bridges,
                             building_probability=float(rng.uniform(0.4, 0.95)),
                             car_probability=float(rng.uniform(0.2, 0.9)))
         if folder.exists():  # a world interrupted half-way: render it again
