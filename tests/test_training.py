@@ -321,3 +321,9 @@ def test_exact_synthetic_disparity_agrees_with_block_matching_on_a_render(tmp_pa
         assert z["bm_left"].shape == (2, 64, 128)
         valid = z["bm_left"][1][z["bm_left"][1] > 0].astype(np.float32)
         assert np.median(valid) == pytest.approx(np.median(exact[0][exact[0] > 0]) / 620, rel=0.1)
+
+
+def test_training_set_description_counts_repeated_entries():
+    from metricslam_train.train import _with_counts
+    assert _with_counts(["a", "a", "b", "a"]) == ["a, listed 3x", "b"]
+    assert _with_counts(["a", "b"]) == ["a", "b"]

@@ -11,6 +11,7 @@ import glob
 import json
 import logging
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -62,7 +63,13 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
         raise TrainingError(f"disparity_offsets_px names {sorted(unknown)} match no sequence (known: "
                             f"{sorted(seen_names)})")
     depth_paths, depth_names = _depth_frame_caches(cfg)
-    return paths + depth_paths, "; ".join(names + depth_names)
+    return paths + depth_paths, "; ".join(_with_counts(names) + depth_names)
+
+
+def _with_counts(names: list[str]) -> list[str]:
+    """``["a", "a", "b"]`` → ``["a, listed 2x", "b"]`` (a sequence listed N times is N-fold weight)."""
+    counts = Counter(names)
+    return [name if counts[name] == 1 else f"{name}, listed {counts[name]}x" for name in dict.fromkeys(names)]
 
 
 def _depth_frame_caches(cfg: TrainConfig) -> tuple[list[Path], list[str]]:
