@@ -23,6 +23,9 @@ Three depth sources per sequence (``--variants``):
   A rectified pair whose calibration is off by a horizontal principal-point shift has such a
   constant disparity offset, which biases metric depth the more the farther the scene
   (KITTI 01: see ``bench/results/scale_upper_bound.md``).
+* ``rendered`` — rendered sequences only (``metricslam synth``, ``depth_0``): the exact inverse
+  depth, median per cell of the 32x64 grid — a depth network without error at the network's
+  resolution. What the graph, the warp and the VO can reach when the depth is right.
 
 Example::
 
@@ -53,7 +56,7 @@ from metricslam.slam.vo.config import VOConfig
 from metricslam.stereo import block_matching_pair
 from metricslam.trajectory.io import write_kitti_poses
 
-VARIANTS = ("legacy", "stereo", "stereo_selfcal")
+VARIANTS = ("legacy", "stereo", "stereo_selfcal", "rendered")
 
 
 def pool_cells(disp_px: np.ndarray, grid_hw: tuple[int, int], min_valid: int, empty: float) -> np.ndarray:
@@ -88,13 +91,19 @@ class StereoDepthSource:
         self.disparity_offset_px = float(disparity_offset_px)
         self.grid_hw = grid_hw
         self.right: dict[str, np.ndarray] = {}
+        self.depth_m: dict[str, np.ndarray] = {}
 
     @staticmethod
     def _key(image: np.ndarray) -> str:
         return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).hexdigest()
 
-    def register(self, left: np.ndarray, right: np.ndarray) -> None:
+    def register(self, left: np.ndarray, right: np.ndarray, depth_m: np.ndarray | None = None) -> None:
+        """Remember the right image (and, for ``rendered``, the true depth (H, W) m) of ``left``."""
         self.right[self._key(left)] = right
+        if self.variant == "rendered":
+            if depth_m is None:
+                raise ValueError("the 'rendered' variant needs a sequence with depth_0 (metricslam synth)")
+            self.depth_m[self._key(left)] = depth_m
 
     def disparity(self, image: np.ndarray) -> np.ndarray:
         """Full-resolution disparity (H, W) px of a registered left image, 0 = invalid, no offset."""
@@ -107,8 +116,13 @@ class StereoDepthSource:
         return block_matching_pair(image, right)[0]
 
     def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
-        disp = self.disparity(image)
         h, w = self.grid_hw
+        if self.variant == "rendered":
+            depth_m = self.depth_m[self._key(image)]
+            inv = np.where(depth_m > 0, 1.0 / np.maximum(depth_m, 1e-6), 0.0).astype(np.float32)
+            n_px = (inv.shape[0] // h) * (inv.shape[1] // w)
+            return pool_cells(inv, self.grid_hw, min_valid=max(10, n_px // 10), empty=np.nan)
+        disp = self.disparity(image)
         if self.variant == "legacy":
             cells = pool_cells(disp, self.grid_hw, min_valid=11, empty=0.0)
         else:
@@ -269,7 +283,7 @@ def run_one(seq: KittiOdometry, src: StereoDepthSource, live: bool) -> tuple[np.
     t0 = time.perf_counter()
     for i in range(len(seq)):
         f = seq[i]
-        src.register(f.image, f.image_right)
+        src.register(f.image, f.image_right, f.depth_m)
         pipe.process(f)
     pipe.close()
     wall = time.perf_counter() - t0
@@ -310,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
             if variant == "stereo_selfcal":
                 calib = calib or self_calibrate(seq, args.live)
                 offset = calib["offset_px"]
-            src = StereoDepthSource(seq.baseline_m, "legacy" if variant == "legacy" else "stereo", offset)
+            src = StereoDepthSource(seq.baseline_m, "stereo" if variant == "stereo_selfcal" else variant, offset)
             traj, backend, wall = run_one(seq, src, args.live)
             est = work / f"{name}_{variant}.txt"
             write_kitti_poses(est, traj)
