@@ -337,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
                               "t_rel_pct": m["t_rel_pct"]}), flush=True)
     if args.out:
         machine = describe()
-        lines = ["# Upper bound: the same SLAM with stereo (SGBM) depth instead of the network", "",
+        lines = ["# Upper bound: the same SLAM with stereo (SGBM) or rendered depth instead of the network", "",
                  f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}  ",
                  f"Mode: {'live (threaded)' if args.live else 'deterministic (inline graph, BA in foreground)'}",
                  "", "| run | depth source | δ px | path m | scale err % | ATE SE(3) m | ATE % path | ATE Sim(3) m | t_rel % |",
