@@ -73,13 +73,14 @@ def pool_cells(disp_px: np.ndarray, grid_hw: tuple[int, int], min_valid: int, em
     return out
 
 
-class StereoDepthSource:
-    """``DepthSource`` from SGBM on the stereo pair (right images registered by image hash).
+class ReferenceDepthSource:
+    """``DepthSource`` from a reference instead of the network: SGBM on the stereo pair, or the
+    rendered depth (right images and depths registered by the left image's hash).
 
     Args:
         baseline_m: stereo baseline (m).
-        variant: ``"legacy"`` or ``"stereo"`` (module docstring); ``stereo_selfcal`` is
-            ``"stereo"`` with ``disparity_offset_px``.
+        variant: ``"legacy"``, ``"stereo"`` or ``"rendered"`` (module docstring);
+            ``stereo_selfcal`` is ``"stereo"`` with ``disparity_offset_px``.
         disparity_offset_px: δ added to every valid disparity (px) before converting to 1/m.
         grid_hw: output grid (the network's).
     """
@@ -261,7 +262,7 @@ def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
 
     backend.on_keyframe_marginalized = record
     pipe = SlamPipeline(seq.camera, vo_cfg, backend=backend)
-    src = StereoDepthSource(seq.baseline_m)
+    src = ReferenceDepthSource(seq.baseline_m)
     for i in range(len(seq)):
         f = seq[i]
         src.register(f.image, f.image_right)
@@ -276,7 +277,7 @@ def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
     return fit_disparity_offset(per_kf)
 
 
-def run_one(seq: KittiOdometry, src: StereoDepthSource, live: bool) -> tuple[np.ndarray, dict, float]:
+def run_one(seq: KittiOdometry, src: ReferenceDepthSource, live: bool) -> tuple[np.ndarray, dict, float]:
     vo_cfg, graph_cfg = configs(live)
     pipe = SlamPipeline(seq.camera, vo_cfg,
                         backend=make_backend(seq.camera, use_scale=True, depth_source=src, config=graph_cfg))
@@ -324,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
             if variant == "stereo_selfcal":
                 calib = calib or self_calibrate(seq, args.live)
                 offset = calib["offset_px"]
-            src = StereoDepthSource(seq.baseline_m, "stereo" if variant == "stereo_selfcal" else variant, offset)
+            src = ReferenceDepthSource(seq.baseline_m, "stereo" if variant == "stereo_selfcal" else variant, offset)
             traj, backend, wall = run_one(seq, src, args.live)
             est = work / f"{name}_{variant}.txt"
             write_kitti_poses(est, traj)
