@@ -99,11 +99,13 @@ class ReferenceDepthSource:
         return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).hexdigest()
 
     def register(self, left: np.ndarray, right: np.ndarray, depth_m: np.ndarray | None = None) -> None:
-        """Remember the right image (and, for ``rendered``, the true depth (H, W) m) of ``left``."""
-        self.right[self._key(left)] = right
-        if self.variant == "rendered":
-            if depth_m is None:
-                raise ValueError("the 'rendered' variant needs a sequence with depth_0 (metricslam synth)")
+        """Remember what ``left``'s depth map is made from: its right image, or for ``rendered``
+        its true depth (H, W) m. Kept for the whole run (``self_calibrate`` revisits keyframes)."""
+        if self.variant != "rendered":
+            self.right[self._key(left)] = right
+        elif depth_m is None:
+            raise ValueError("the 'rendered' variant needs a sequence with depth_0 (metricslam synth)")
+        else:
             self.depth_m[self._key(left)] = depth_m
 
     def disparity(self, image: np.ndarray) -> np.ndarray:

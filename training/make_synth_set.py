@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         sub = poses[start:start + span:args.pose_step]
         path_file = tmp / f"w{seed}.txt"
         write_kitti_poses(path_file, sub)
+        # drawn with or without --no-traffic, so a seed's other draws (buildings, cars) stay the same
         traffic = float(rng.choice([0.0, rng.uniform(3, 25)], p=[0.15, 0.85]))
         bridges = float(rng.choice([0.0, rng.uniform(5, 30)], p=[0.5, 0.5]))
         world = WorldConfig(traffic_per_100m=0.0 if args.no_traffic else traffic,
