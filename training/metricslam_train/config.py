@@ -76,6 +76,10 @@ class TrainConfig(BaseModel):
     frame_step: int = Field(1, ge=1)
     #: rendered sequences (with ``depth_0/``) supervise with their exact disparity, not SGBM
     exact_synthetic_disparity: bool = False
+    #: SGBM search range of the stereo labels, full-resolution px (multiple of 16). KITTI's
+    #: fx·B ≈ 387 px·m: 128 px reaches 3.0 m, 192 px 2.0 m; nearer surfaces get no (or aliased)
+    #: labels. Part of the cache name, so changing it rebuilds the caches.
+    sgbm_num_disparities: int = Field(128, ge=16, multiple_of=16)
     train_baseline_m: float = Field(0.537, gt=0)
     input_height: int = Field(256, gt=0, multiple_of=64)
     input_width: int = Field(512, gt=0, multiple_of=64)
@@ -94,6 +98,11 @@ class TrainConfig(BaseModel):
     #: and step count start fresh, and its training data is recorded with this run's.
     init_from: str | None = None
     checkpoint_every: int = Field(250, ge=1)
+    #: exponential moving average of the weights (Polyak averaging), updated every step with
+    #: decay ``min(ema_decay, (1 + step) / (10 + step))``; checkpoints carry it as ``ema`` and
+    #: export uses it. ``None`` = off. 0.999 averages over roughly the last 1,000 steps, which
+    #: damps the checkpoint-to-checkpoint swings of the metric level.
+    ema_decay: float | None = Field(None, gt=0, lt=1)
     seed: int = 0
     threads: int = Field(1, ge=1)
     device: str = "auto"

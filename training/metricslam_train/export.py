@@ -47,10 +47,19 @@ def load_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
-def network_from_checkpoint(ckpt: dict) -> PyramidDepthNet:
-    """Rebuild the network and load its weights (eval mode)."""
+def network_from_checkpoint(ckpt: dict, weights: str = "auto") -> PyramidDepthNet:
+    """Rebuild the network and load its weights (eval mode).
+
+    ``weights``: ``"ema"`` the moving average of the weights (``TrainConfig.ema_decay``),
+    ``"raw"`` the optimizer's last weights, ``"auto"`` the average when the checkpoint has one.
+    """
+    if weights not in ("auto", "ema", "raw"):
+        raise TrainingError(f"weights must be auto, ema or raw, not {weights!r}")
+    if weights == "ema" and "ema" not in ckpt:
+        raise TrainingError("this checkpoint has no weight average: train with ema_decay set, or export raw weights")
+    use_ema = weights == "ema" or (weights == "auto" and "ema" in ckpt)
     net = PyramidDepthNet(max_d_frac=float(ckpt["meta"]["max_d_frac"]))
-    net.load_state_dict(ckpt["model"])
+    net.load_state_dict(ckpt["ema"] if use_ema else ckpt["model"])
     return net.eval()
 
 
@@ -94,10 +103,12 @@ def export_onnx(net: PyramidDepthNet, contract: ModelContract, out_path: str | P
     return out
 
 
-def export_checkpoint(ckpt_path: str | Path, out_path: str | Path, model_id: str | None = None) -> ModelContract:
-    """Checkpoint -> ONNX; returns the contract written."""
+def export_checkpoint(ckpt_path: str | Path, out_path: str | Path, model_id: str | None = None,
+                      weights: str = "auto") -> ModelContract:
+    """Checkpoint -> ONNX; returns the contract written (``weights``: see
+    :func:`network_from_checkpoint`)."""
     ckpt = load_checkpoint(ckpt_path)
-    net = network_from_checkpoint(ckpt)
+    net = network_from_checkpoint(ckpt, weights)
     contract = contract_for(net, ckpt["meta"], model_id)
     export_onnx(net, contract, out_path)
     return contract

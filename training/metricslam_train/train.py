@@ -46,12 +46,14 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
             exact = cfg.exact_synthetic_disparity and bool(seq.depth_paths)
             offset_px = float(cfg.disparity_offsets_px.get(seq.name, 0.0))
             tag = (f"{seq.name}_{cfg.input_height}x{cfg.input_width}_s{cfg.frame_step}{'_exact' if exact else ''}"
-                   + (f"_off{offset_px:+.2f}px" if offset_px else ""))
+                   + (f"_off{offset_px:+.2f}px" if offset_px else "")
+                   + (f"_nd{cfg.sgbm_num_disparities}" if cfg.sgbm_num_disparities != 128 else ""))
             path = Path(cfg.cache_dir) / f"{tag}.npz"
             if not path.is_file():
                 log.info("building cache %s from %s", path, folder)
                 build_cache(seq, path, cfg.train_baseline_m, cfg.input_height, cfg.input_width,
-                            exact_synthetic=exact, disparity_offset_px=offset_px)
+                            num_disparities=cfg.sgbm_num_disparities, exact_synthetic=exact,
+                            disparity_offset_px=offset_px)
             paths.append(path)
             n_pairs += len(seq.left_paths)
         label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
@@ -121,6 +123,28 @@ def _lr_at(cfg: TrainConfig, step: int) -> float:
     return cfg.lr * 0.5**halvings
 
 
+class WeightAverage:
+    """Exponential moving average of a network's floating-point state (Polyak averaging).
+
+    ``update(net, step)`` after each optimizer step; ``state`` is a ``state_dict`` the network
+    loads as is. The decay ramps up as ``min(decay, (1 + step) / (10 + step))`` so the first
+    steps do not freeze the random initialization in.
+    """
+
+    def __init__(self, net: torch.nn.Module, decay: float) -> None:
+        self.decay = float(decay)
+        self.state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, net: torch.nn.Module, step: int) -> None:
+        d = min(self.decay, (1.0 + step) / (10.0 + step))
+        for key, value in net.state_dict().items():
+            if value.dtype.is_floating_point:
+                self.state[key].mul_(d).add_(value.detach(), alpha=1.0 - d)
+            else:
+                self.state[key].copy_(value)
+
+
 def train(cfg: TrainConfig, progress: bool = True) -> Path:
     """Train (or resume) to ``cfg.steps``; returns the path of the final checkpoint."""
     from tqdm import tqdm
@@ -151,9 +175,12 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             log.info("initialized weights from %s", cfg.init_from)
         training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name}, trained on: "
                          f"{init['meta']['training_data']}")
+    ema = WeightAverage(net, cfg.ema_decay) if cfg.ema_decay else None
     if last.is_file():
         ckpt = torch.load(last, map_location=device, weights_only=False)
         net.load_state_dict(ckpt["model"])
+        if ema is not None:
+            ema.state = ckpt["ema"] if "ema" in ckpt else {k: v.detach().clone() for k, v in net.state_dict().items()}
         optim.load_state_dict(ckpt["optim"])
         step = int(ckpt["step"])
         rng.bit_generator.state = ckpt["np_rng"]
@@ -167,7 +194,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     def save(path: Path) -> None:
         torch.save({"model": net.state_dict(), "optim": optim.state_dict(), "step": step, "meta": meta,
                     "np_rng": rng.bit_generator.state, "torch_rng": gen.get_state(),
-                    "config": json.loads(cfg.model_dump_json())}, path.with_suffix(".tmp"))
+                    "config": json.loads(cfg.model_dump_json()),
+                    **({"ema": ema.state} if ema is not None else {})}, path.with_suffix(".tmp"))
         path.with_suffix(".tmp").replace(path)
 
     net.train()
@@ -192,6 +220,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
+            if ema is not None:
+                ema.update(net, step)
             step += 1
             record = {"step": step, "loss": float(loss.detach()), **terms, "learning_rate": lr,
                       "d3_mean": float(outputs[0][:, 0].mean().detach()), "s": round(time.perf_counter() - t0, 4)}

@@ -12,6 +12,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("checkpoint", help="a .pt file written by `metricslam train` (e.g. runs/depth/final.pt)")
     p.add_argument("--out", required=True, help="output .onnx path")
     p.add_argument("--model-id", help="override the model id written into the metadata")
+    p.add_argument("--weights", choices=("auto", "ema", "raw"), default="auto",
+                   help="ema: the moving average of the weights (configs with ema_decay); raw: the last "
+                        "optimizer weights; auto (default): the average when the checkpoint has one")
     p.set_defaults(func=run)
     return p
 
@@ -23,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
         from metricslam_train.export import export_checkpoint
     except ImportError as exc:
         raise TrainingError(f"{TRAIN_HINT} ({exc})") from exc
-    contract = export_checkpoint(args.checkpoint, args.out, args.model_id)
+    contract = export_checkpoint(args.checkpoint, args.out, args.model_id, args.weights)
     print(f"{args.out}: {contract.model_id}, {contract.params} params, input {contract.input_height}x"
           f"{contract.input_width}, output {contract.output_height}x{contract.output_width} d_frac, "
           f"baseline {contract.baseline_m} m, trained on {contract.training_data}")
