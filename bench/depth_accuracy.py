@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from metricslam.datasets.kitti import KittiOdometry
-from metricslam.datasets.kitti_depth import KittiRawDepth
+from metricslam.datasets import open_sequence
 from metricslam.depth import DepthModel, sample_map
 from metricslam.stereo import block_matching_pair  # the matcher of the training labels
 
@@ -86,8 +86,24 @@ def l3_oracle_depth(true_m: np.ndarray, uv_px: np.ndarray, image_size: tuple[int
     return np.clip(1.0 / np.maximum(inv_at, 1.0 / max_depth_m), 1e-3, max_depth_m)
 
 
+#: range bins (m) of the per-bin medians: where the scale factors sample the network, bin by bin
+RANGE_BINS_M = ((1.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0))
+
+
+def per_range_bin(pred_m: np.ndarray, true_m: np.ndarray) -> dict[str, dict]:
+    """Median pred/true and abs-rel per reference-depth bin (:data:`RANGE_BINS_M`), keyed "lo-hi"."""
+    out = {}
+    for lo, hi in RANGE_BINS_M:
+        sel = (true_m >= lo) & (true_m < hi)
+        if sel.sum() >= 20:
+            out[f"{lo:g}-{hi:g}"] = metrics(pred_m[sel], true_m[sel])
+    return out
+
+
 def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
-    seq = KittiRawDepth(folder)
+    """Projected LiDAR of a KITTI raw colour folder (``image_02``/``depth_02``) or of a KITTI-layout
+    sequence with ``depth_0`` (e.g. ``kitti_raw_stereo/sequences/2011_09_26_drive_0013``)."""
+    seq = open_sequence(folder)
     cam = seq.camera
     preds, flats, oracles, trues, per_frame = [], [], [], [], []
     grid_hw = (model.contract.output_height, model.contract.output_width)
@@ -106,8 +122,9 @@ def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
         preds.append(pred), flats.append(flat), trues.append(true)
         per_frame.append(float(np.median(pred / true)))
     pred, flat, oracle, true = (np.concatenate(x) for x in (preds, flats, oracles, trues))
-    return {"frames": len(per_frame), "model": metrics(pred, true), "flat_road": metrics(flat, true),
-            "l3_oracle": metrics(oracle, true), **slam_range(pred, flat, true, args.slam_min_depth_m),
+    return {"folder": str(folder), "frames": len(per_frame), "model": metrics(pred, true),
+            "flat_road": metrics(flat, true), "l3_oracle": metrics(oracle, true),
+            **slam_range(pred, flat, true, args.slam_min_depth_m), "model_by_range": per_range_bin(pred, true),
             "per_frame_median_ratio": {"mean": float(np.mean(per_frame)), "std": float(np.std(per_frame))}}
 
 
@@ -167,6 +184,16 @@ def _table(rows: list[tuple[str, dict]], slam_min_depth_m: float) -> str:
     return "\n".join(lines)
 
 
+def _range_table(label: str, res: dict) -> str:
+    bins = res.get("model_by_range", {})
+    head = "| " + label + " | " + " | ".join(f"{b} m" for b in bins) + " |"
+    rule = "| --- |" + " --- |" * len(bins)
+    med = "| model median pred/true | " + " | ".join(f"{m['median_ratio']:.3f}" for m in bins.values()) + " |"
+    rel = "| model abs-rel | " + " | ".join(f"{m['abs_rel']:.3f}" for m in bins.values()) + " |"
+    n = "| pixels | " + " | ".join(str(m["n_pixels"]) for m in bins.values()) + " |"
+    return "\n".join([head, rule, med, rel, n])
+
+
 def _frame_range(text: str) -> tuple[int, int | None]:
     first, _, stop = text.partition(":")
     try:
@@ -180,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", default="../shared/data", help="the shared data folder")
     p.add_argument("--model", help="ONNX model (default: shipped)")
     p.add_argument("--stereo-seq", default="06", help="held-out KITTI odometry sequence ('' to skip)")
+    p.add_argument("--lidar", default="kitti_raw_lidar",
+                   help="LiDAR folder under --data (kitti_raw_lidar, or a KITTI-layout sequence with depth_0/ "
+                        "such as kitti_raw_stereo/sequences/2011_09_26_drive_0013)")
     p.add_argument("--frame-step", type=int, default=1)
     p.add_argument("--lidar-frames", type=_frame_range, default=(0, None), metavar="FIRST:STOP",
                    help="score LiDAR frames FIRST <= i < STOP only (default all; '0:20' is the part "
@@ -197,15 +227,16 @@ def main(argv: list[str] | None = None) -> int:
     model = DepthModel.load(args.model, threads=1)
     results = {"model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
                "training_data": model.contract.training_data,
-               "lidar": evaluate_lidar(model, data / "kitti_raw_lidar", args)}
+               "lidar": evaluate_lidar(model, data / args.lidar, args)}
     first, stop = args.lidar_frames
-    lidar_label = "kitti_raw_lidar (LiDAR)" if (first, stop) == (0, None) else \
-        f"kitti_raw_lidar frames {first}..{'end' if stop is None else stop - 1} (LiDAR)"
+    lidar_name = Path(args.lidar).name
+    lidar_label = f"{lidar_name} (LiDAR)" if (first, stop) == (0, None) else \
+        f"{lidar_name} frames {first}..{'end' if stop is None else stop - 1} (LiDAR)"
     rows = [(lidar_label, results["lidar"])]
     if args.stereo_seq:
         results["stereo"] = evaluate_stereo(model, data / "kitti_odometry" / "sequences" / args.stereo_seq, args)
         rows.append((f"KITTI {args.stereo_seq} (SGBM, textured)", results["stereo"]))
-    table = _table(rows, args.slam_min_depth_m)
+    table = _table(rows, args.slam_min_depth_m) + "\n\n" + _range_table(lidar_label, results["lidar"])
     print(table)
     if args.out:
         out = Path(args.out)

@@ -1,0 +1,164 @@
+"""Depth-model selection by the rule committed with the candidates' configs (issue #16).
+
+The rule (written in ``configs/train_depth_v3_log.yaml`` and ``…_v3_dfrac.yaml`` before any
+candidate's number was seen):
+
+* candidates: the **EMA** weights of each training run at the given steps, exported to float32
+  ONNX (``metricslam export --weights ema``);
+* score: :func:`landmark_depth.summary`'s ``worst_abs_log_ratio`` (the worst |log median
+  z_net/z_tri| over the bins 5–10, 10–20, 20–40, 40–60 m with ≥ 20 corners) on every validation
+  sequence, and the **max over the sequences**; the lowest score wins;
+* guard: the single-image LiDAR median ratio on the LiDAR validation folder
+  (:func:`depth_accuracy.evaluate_lidar`) within [0.9, 1.1];
+* the winner replaces the default only if its score beats the default's on the same benchmark.
+
+The raw (optimizer) weights of the same checkpoints are scored too, for the spread between
+checkpoints that the moving average is meant to damp; they are never candidates.
+
+Example::
+
+    .venv/bin/python bench/select_depth.py --run runs/depth_v3_log --run runs/depth_v3_dfrac \\
+        --steps 3000 4000 5000 6000 --data ../shared/data --out bench/results/depth_v3_selection
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from depth_accuracy import evaluate_lidar  # noqa: E402
+from landmark_depth import evaluate, summary  # noqa: E402
+from machine import describe, write_results  # noqa: E402
+
+from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel  # noqa: E402
+
+#: validation sequences of issue #16 (relative to --data): (sequence folder, ground-truth poses)
+VALIDATION = (("kitti_raw_stereo/sequences/2011_09_26_drive_0013", "kitti_raw_stereo/poses/2011_09_26_drive_0013.txt"),
+              ("kitti_odometry/sequences/06", "kitti_odometry/poses/06.txt"))
+LIDAR_VALIDATION = "kitti_raw_stereo/sequences/2011_09_26_drive_0013"
+LIDAR_GUARD = (0.9, 1.1)
+
+
+def export(run_dir: Path, step: int, weights: str, out_dir: Path) -> Path:
+    """``run_dir/step_XXXXXX.pt`` → ``out_dir/<run>_<step>_<weights>.onnx`` (kept if present)."""
+    out = out_dir / f"{run_dir.name}_{step}_{weights}.onnx"
+    if not out.is_file():
+        ckpt = run_dir / f"step_{step:06d}.pt"
+        subprocess.run([str(Path(sys.executable).parent / "metricslam"), "export", str(ckpt), "--out", str(out),
+                        "--weights", weights], check=True, capture_output=True, text=True)
+    return out
+
+
+def lidar_median(model_path: Path, data: Path) -> dict:
+    args = SimpleNamespace(lidar_frames=(0, None), frame_step=2, min_depth_m=1.0, max_depth_m=80.0,
+                           camera_height_m=1.65, slam_min_depth_m=10.0)
+    res = evaluate_lidar(DepthModel.load(model_path, threads=1), data / LIDAR_VALIDATION, args)
+    return {"median_ratio": res["model"]["median_ratio"], "abs_rel": res["model"]["abs_rel"],
+            "by_range": {k: v["median_ratio"] for k, v in res["model_by_range"].items()}}
+
+
+def score(model_path: Path, data: Path, label: str) -> dict:
+    seqs = [(str(data / s), str(data / g)) for s, g in VALIDATION]
+    corners = evaluate(seqs, model_path, label)
+    per_seq = summary(corners)
+    worst = [v["worst_abs_log_ratio"] for v in per_seq.values()]
+    lidar = lidar_median(model_path, data)
+    bins = {name: {b: res["network"][b]["median"] for b in res["network"]}
+            for name, res in corners["sequences"].items()}
+    return {"label": label, "model": str(model_path), "score": max(w if w is not None else np.inf for w in worst),
+            "per_sequence": per_seq, "bins": bins, "lidar": lidar,
+            "guard_ok": LIDAR_GUARD[0] <= lidar["median_ratio"] <= LIDAR_GUARD[1]}
+
+
+def markdown(report: dict) -> str:
+    seq_names = list(report["default"]["bins"])
+    bins = ("5-10", "10-20", "20-40", "40-60")
+    head = ("| candidate | weights | score (max worst abs log) | "
+            + " | ".join(f"{s[-4:]} {b} m" for s in seq_names for b in bins)
+            + " | LiDAR median (0013) | abs-rel | guard |")
+    lines = [f"# Depth v3 selection\n\nCommand: `{report['command']}`  \nMachine: {report['machine']}\n",
+             "Score: the worst |log median(z_net/z_tri)| over the bins 5–60 m, max over 0013 and 06 "
+             "(bench/landmark_depth.py); lower is better. Candidates are EMA weights; raw weights are "
+             "shown for the spread only.\n", head, "|" + " --- |" * (head.count("|") - 1)]
+
+    def row(r: dict, weights: str) -> str:
+        cells = []
+        for s in seq_names:
+            for b in bins:
+                m = r["bins"][s].get(b)
+                cells.append(f"×{m:.2f}" if m else "–")
+        return (f"| {r['label']} | {weights} | {r['score']:.3f} | " + " | ".join(cells)
+                + f" | {r['lidar']['median_ratio']:.3f} | {r['lidar']['abs_rel']:.3f} | "
+                f"{'ok' if r['guard_ok'] else 'FAIL'} |")
+
+    lines.append(row(report["default"], "shipped"))
+    for r in report["candidates"]:
+        lines.append(row(r, "ema"))
+    for r in report["raw"]:
+        lines.append(row(r, "raw"))
+    w = report["winner"]
+    lines += ["", f"**Winner by the rule:** {w['label'] if w else 'none passes the guard'}"
+              + (f" (score {w['score']:.3f} vs the default's {report['default']['score']:.3f}; "
+                 f"{'replaces the default' if report['replaces_default'] else 'does NOT beat the default'})" if w else "")]
+    for run, spread in report["spread"].items():
+        lines.append(f"- `{run}` spread over checkpoints (raw → EMA), per-sequence all-corner median z_net/z_tri "
+                     f"range: {spread}")
+    return "\n".join(lines) + "\n"
+
+
+def spread_text(rows: list[dict]) -> str:
+    out = []
+    for name in rows[0]["bins"]:
+        meds = [r["bins"][name]["all"] for r in rows if r["bins"][name].get("all")]
+        out.append(f"{name} {min(meds):.3f}–{max(meds):.3f}")
+    return ", ".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, help="training run folder (repeat)")
+    p.add_argument("--steps", type=int, nargs="+", required=True, help="checkpoint steps to score")
+    p.add_argument("--data", default="../shared/data")
+    p.add_argument("--export-dir", default="runs/candidates")
+    p.add_argument("--no-raw", action="store_true", help="skip the raw-weight rows")
+    p.add_argument("--out", required=True, metavar="PREFIX")
+    args = p.parse_args(argv)
+    data, export_dir = Path(args.data), Path(args.export_dir)
+    export_dir.mkdir(parents=True, exist_ok=True)
+    report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
+              "machine": describe(), "default": score(DEFAULT_MODEL_PATH, data, "default (shipped)"),
+              "candidates": [], "raw": [], "spread": {}}
+    for run in map(Path, args.run):
+        rows_raw, rows_ema = [], []
+        for step in args.steps:
+            if not (run / f"step_{step:06d}.pt").is_file():
+                continue
+            rows_ema.append(score(export(run, step, "ema", export_dir), data, f"{run.name}@{step}"))
+            if not args.no_raw:
+                rows_raw.append(score(export(run, step, "raw", export_dir), data, f"{run.name}@{step}"))
+        report["candidates"] += rows_ema
+        report["raw"] += rows_raw
+        if rows_ema:
+            report["spread"][run.name] = (f"raw {spread_text(rows_raw)}; " if rows_raw else "") \
+                + f"EMA {spread_text(rows_ema)}"
+    passing = [r for r in report["candidates"] if r["guard_ok"]]
+    report["winner"] = min(passing, key=lambda r: r["score"]) if passing else None
+    report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])
+    text = markdown(report)
+    print(text)
+    write_results(args.out, report, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
