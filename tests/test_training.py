@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 torch = pytest.importorskip("torch")
 
@@ -327,3 +328,49 @@ def test_training_set_description_counts_repeated_entries():
     from metricslam_train.train import _with_counts
     assert _with_counts(["a", "a", "b", "a"]) == ["a, listed 3x", "b"]
     assert _with_counts(["a", "b"]) == ["a", "b"]
+
+
+def test_weight_average_follows_the_weights_with_a_ramped_decay():
+    from metricslam_train.train import WeightAverage
+
+    net = torch.nn.Linear(2, 1)
+    with torch.no_grad():
+        net.weight.fill_(0.0)
+    ema = WeightAverage(net, decay=0.9)
+    with torch.no_grad():
+        net.weight.fill_(1.0)
+    ema.update(net, step=0)  # decay min(0.9, 1/10) = 0.1: mostly the new weights
+    assert torch.allclose(ema.state["weight"], torch.full((1, 2), 0.9))
+    for step in range(1, 200):
+        ema.update(net, step)
+    assert torch.allclose(ema.state["weight"], torch.ones(1, 2), atol=1e-6)
+    assert ema.state["weight"] is not net.state_dict()["weight"]
+
+
+def test_checkpoints_carry_the_weight_average_and_export_uses_it(tmp_path):
+    from metricslam_train.export import export_checkpoint, load_checkpoint, network_from_checkpoint
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    final = train(_config(tmp_path, steps=3, ema_decay=0.99), progress=False)
+    ckpt = load_checkpoint(final)
+    assert set(ckpt["ema"]) == set(ckpt["model"])
+    key = "estimators.0.out.weight"
+    assert not torch.equal(ckpt["ema"][key], ckpt["model"][key])
+    assert torch.equal(network_from_checkpoint(ckpt).state_dict()[key], ckpt["ema"][key])
+    assert torch.equal(network_from_checkpoint(ckpt, "raw").state_dict()[key], ckpt["model"][key])
+    export_checkpoint(final, tmp_path / "ema.onnx")
+    export_checkpoint(final, tmp_path / "raw.onnx", weights="raw")
+    assert (tmp_path / "ema.onnx").read_bytes() != (tmp_path / "raw.onnx").read_bytes()
+    plain = train(_config(tmp_path, steps=1, run_dir=str(tmp_path / "plain")), progress=False)
+    with pytest.raises(TrainingError, match="no weight average"):
+        network_from_checkpoint(load_checkpoint(plain), "ema")
+
+
+def test_sgbm_range_is_part_of_the_cache_name(tmp_path):
+    from metricslam_train.train import prepare_caches
+
+    paths, _ = prepare_caches(_config(tmp_path, sgbm_num_disparities=64))
+    assert paths[0].name.endswith("_nd64.npz")
+    with pytest.raises(ValidationError):
+        _config(tmp_path, sgbm_num_disparities=100)
