@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: install install-dev test demo clean
+.PHONY: install install-dev lint test demo clean
 
 $(BIN)/python:
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (Python 3.11) on PATH"; exit 1; }
@@ -28,11 +28,19 @@ $(VENV)/.installed-dev: $(STAMP) pyproject.toml
 
 install-dev: $(VENV)/.installed-dev
 
-test: install-dev
+# Guards (STYLE.md habit 18): ruff's rule set and the import-layer contracts, both in
+# pyproject.toml; zero findings, nothing excluded.
+LINT_PATHS := shared services training bench tests
+
+lint: install-dev
+	$(BIN)/ruff check $(LINT_PATHS)
+	$(BIN)/lint-imports --no-cache
+
+test: lint
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 demo: install
 	$(BIN)/metricslam demo
 
 clean:
-	rm -rf $(VENV) .pytest_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache

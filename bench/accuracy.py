@@ -213,7 +213,7 @@ def render_markdown(report: dict) -> str:
     lines += ["", "## Run commands", ""]
     for s in report["sequences"]:
         for k, rep in enumerate(s["repeats"], 1):
-            for mode, r in rep["runs"].items():
+            for r in rep["runs"].values():
                 st = r.get("stats", {})
                 lines.append(f"* {'' if n_rep == 1 else f'run {k}: '}`{r['command']}` — "
                              f"{_f(st.get('fps'), '.1f')} frames/s, "

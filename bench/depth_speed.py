@@ -55,8 +55,9 @@ def main(argv: list[str] | None = None) -> int:
         model = DepthModel.load(args.model, threads=threads)
         x = model.preprocess([image])
         session, c = model._session, model.contract  # noqa: SLF001 — timing the bare network
-        net = _time(lambda: session.run([c.output_name], {c.input_name: x}), args.warmup, args.repeats)
-        full = _time(lambda: model.predict_inv_depth(image, 707.0), args.warmup, args.repeats)
+        net = _time(lambda session=session, c=c, x=x: session.run([c.output_name], {c.input_name: x}),
+                    args.warmup, args.repeats)
+        full = _time(lambda model=model: model.predict_inv_depth(image, 707.0), args.warmup, args.repeats)
         results[str(threads)] = {"network": net, "predict_inv_depth_1226x370": full}
     c = model.contract
     lines = ["| threads | network median (ms) | network p90 | network CPU time median (ms) | "

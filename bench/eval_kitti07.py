@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from metricslam.evaluation.kitti_metric import trajectory_distances
-from metricslam.geometry import so3
+from metricslam.geometry import sim3, so3
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,7 +76,7 @@ def evo(tool: str, gt: Path, est: Path, out_zip: Path, *flags: str) -> tuple[dic
             import io
 
             S = np.load(io.BytesIO(z.read("alignment_transformation_sim3.npy")))
-            stats["scale"] = float(np.cbrt(np.linalg.det(S[:3, :3])))
+            stats["scale"] = sim3.scale(S)
     return stats, cmd
 
 

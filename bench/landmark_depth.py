@@ -80,6 +80,7 @@ import numpy as np
 from machine import describe, write_results
 from metricslam.datasets import open_sequence
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, sample_map
+from metricslam.geometry.sim3 import scale as sim3_scale
 from metricslam.stereo import block_matching_pair
 from scale_upper_bound import disparity_at, pool_cells
 
@@ -288,26 +289,24 @@ class _RecordingSource:
 
 
 def slam_preset(seq_dir: str | Path) -> str:
-    """The VO preset ``metricslam run`` picks for a KITTI-layout folder (``synth`` when it has
-    ``depth_0/`` — note: also KITTI raw folders with projected LiDAR there)."""
-    return "synth" if (Path(seq_dir) / "depth_0").is_dir() else "kitti"
+    """The VO preset ``metricslam run`` picks for the folder (:func:`~metricslam.slam.session_builder.preset_for`)."""
+    from metricslam.slam.session_builder import preset_for
+
+    return preset_for(seq_dir)
 
 
 def slam_landmark_depths(seq, model: DepthModel, preset: str) -> dict:
-    """Run ``metricslam run --deterministic``'s system in-process; the metric depth (m) the SLAM
-    gives its scale landmarks, ``s_kf / ξ_j``, pooled over keyframes (module docstring)."""
-    from metricslam.slam.backend_factory import make_backend
-    from metricslam.slam.config_file import (
-        DETERMINISTIC_GRAPH,
-        DETERMINISTIC_VO,
-        ConfigOverrides,
-    )
-    from metricslam.slam.pipeline import SlamPipeline
+    """Run ``metricslam run --deterministic``'s system in-process (the one session builder); the
+    metric depth (m) the SLAM gives its scale landmarks, ``s_kf / ξ_j``, pooled over keyframes
+    (module docstring)."""
+    from metricslam.slam.session_builder import build_session
+    from metricslam.slam.system_config import SystemConfig
 
-    overrides = ConfigOverrides()
-    graph_cfg = overrides.graph_config(**DETERMINISTIC_GRAPH)
+    config = SystemConfig(vo={"preset": preset}, deterministic=True)
+    graph_cfg = config.graph_config()
     source = _RecordingSource(model)
-    backend = make_backend(seq.camera, use_scale=True, depth_source=source, config=graph_cfg)
+    pipe = build_session(seq.camera, config, depth_source=source)
+    backend = pipe.backend
     keyframes = []
     forward = backend.on_keyframe_marginalized
 
@@ -316,7 +315,6 @@ def slam_landmark_depths(seq, model: DepthModel, preset: str) -> dict:
         return forward(kf)
 
     backend.on_keyframe_marginalized = record
-    pipe = SlamPipeline(seq.camera, overrides.vo_config(preset, **DETERMINISTIC_VO), backend=backend)
     try:
         for i in range(len(seq)):
             pipe.process(seq[i])
@@ -329,7 +327,7 @@ def slam_landmark_depths(seq, model: DepthModel, preset: str) -> dict:
         xi = np.asarray(kf.landmarks_inv_depth, float).reshape(-1)
         if S is None or inv_map is None or xi.size == 0:
             continue
-        s_kf = float(np.cbrt(np.linalg.det(np.asarray(S, float)[:3, :3])))
+        s_kf = float(sim3_scale(np.asarray(S, float)))
         z_net_inv = sample_map(inv_map, kf.landmarks_uv_px, (kf.image.shape[1], kf.image.shape[0]))
         ok = (np.isfinite(xi) & (xi > 0) & np.isfinite(z_net_inv) & (z_net_inv >= graph_cfg.min_inv_depth_per_m)
               & (z_net_inv <= graph_cfg.max_inv_depth_per_m))

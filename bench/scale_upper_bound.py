@@ -48,11 +48,8 @@ import cv2
 import numpy as np
 from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
-from metricslam.slam.backend_factory import make_backend
-from metricslam.slam.config_file import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, ConfigOverrides
-from metricslam.slam.graph.config import GraphConfig
-from metricslam.slam.pipeline import SlamPipeline
-from metricslam.slam.vo.config import VOConfig
+from metricslam.slam.session_builder import build_session
+from metricslam.slam.system_config import SystemConfig
 from metricslam.stereo import block_matching_pair
 from metricslam.trajectory.io import write_kitti_poses
 
@@ -224,7 +221,9 @@ def stereo_check(seq: KittiOdometry, gap: int = 2, stride: int = 3) -> dict:
         parallax_deg = np.degrees(np.arccos(np.clip((r0 * r1).sum(0), -1, 1)))
         good = (X[2] > 3) & (X[2] < 80) & (reproj_px < 1.0) & (parallax_deg > 2.0)
         d = disparity_at(block_matching_pair(a.image, a.image_right)[0], x0[good])
-        z_gt += list(X[2][good]); d_gt += list(fb / X[2][good]); d_sgbm += list(d)
+        z_gt += list(X[2][good])
+        d_gt += list(fb / X[2][good])
+        d_sgbm += list(d)
         q1, st, _ = cv2.calcOpticalFlowPyrLK(a.image, a.image_right, p0, None, winSize=(21, 21), maxLevel=4)
         qb, st2, _ = cv2.calcOpticalFlowPyrLK(a.image_right, a.image, q1, None, winSize=(21, 21), maxLevel=4)
         ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(qb - p0, axis=2)[:, 0] < 0.3)
@@ -243,27 +242,23 @@ def stereo_check(seq: KittiOdometry, gap: int = 2, stride: int = 3) -> dict:
             "lk_negative_disparity_fraction": float(np.mean(d_lk < 0))}
 
 
-def configs(live: bool) -> tuple[VOConfig, GraphConfig]:
-    """The KITTI preset and graph defaults, as ``metricslam run [--deterministic]`` builds them."""
-    overrides = ConfigOverrides()
-    if live:
-        return overrides.vo_config("kitti"), overrides.graph_config()
-    return overrides.vo_config("kitti", **DETERMINISTIC_VO), overrides.graph_config(**DETERMINISTIC_GRAPH)
+def system_config(live: bool, use_scale: bool = True) -> SystemConfig:
+    """The KITTI preset and graph defaults, as ``metricslam run [--deterministic]`` builds them
+    (the graph's live depth queue: this bench never loads the machine enough to drop)."""
+    return SystemConfig(vo={"preset": "kitti"}, depth={"use_scale": use_scale}, deterministic=not live)
 
 
 def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
     """Pass 1: the same VO without scale factors; fit δ at its keyframes' landmarks (no GT)."""
-    vo_cfg, graph_cfg = configs(live)
-    backend = make_backend(seq.camera, use_scale=False, config=graph_cfg)
+    pipe = build_session(seq.camera, system_config(live, use_scale=False))
     keyframes = []
-    forward = backend.on_keyframe_marginalized
+    forward = pipe.backend.on_keyframe_marginalized
 
     def record(kf):
         keyframes.append(kf)
         return forward(kf)
 
-    backend.on_keyframe_marginalized = record
-    pipe = SlamPipeline(seq.camera, vo_cfg, backend=backend)
+    pipe.backend.on_keyframe_marginalized = record
     src = ReferenceDepthSource(seq.baseline_m)
     for i in range(len(seq)):
         f = seq[i]
@@ -280,9 +275,7 @@ def self_calibrate(seq: KittiOdometry, live: bool) -> dict:
 
 
 def run_one(seq: KittiOdometry, src: ReferenceDepthSource, live: bool) -> tuple[np.ndarray, dict, float]:
-    vo_cfg, graph_cfg = configs(live)
-    pipe = SlamPipeline(seq.camera, vo_cfg,
-                        backend=make_backend(seq.camera, use_scale=True, depth_source=src, config=graph_cfg))
+    pipe = build_session(seq.camera, system_config(live), depth_source=src)
     t0 = time.perf_counter()
     for i in range(len(seq)):
         f = seq[i]

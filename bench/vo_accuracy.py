@@ -26,12 +26,10 @@ from pathlib import Path
 
 import numpy as np
 from machine import describe
-from metricslam.datasets import detect_format, open_sequence
+from metricslam.datasets import open_sequence
 from metricslam.evaluation import evaluate_poses
-from metricslam.slam.pipeline import SlamPipeline
-from metricslam.slam.vo.config import VOConfig
-
-PRESETS = {"kitti": "kitti", "kitti_raw_depth": "kitti", "euroc": "euroc", "tum": "tum"}
+from metricslam.slam.session_builder import build_session, preset_for
+from metricslam.slam.system_config import SystemConfig
 
 
 def run_sequence(path: Path, preset: str | None, background: bool, max_frames: int | None) -> dict:
@@ -39,11 +37,12 @@ def run_sequence(path: Path, preset: str | None, background: bool, max_frames: i
     if seq.T_world_cam_gt is None:
         raise SystemExit(f"{path}: no ground truth to evaluate against")
     n = len(seq) if max_frames is None else min(max_frames, len(seq))
-    preset = preset or ("synth" if (path / "depth_0").is_dir() else PRESETS.get(detect_format(path), "kitti"))
+    preset = preset or preset_for(path)
     t0 = time.perf_counter()
     frames = [seq[i] for i in range(n)]
     decode_s = time.perf_counter() - t0
-    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset, ba_in_background=background))
+    config = SystemConfig(vo={"preset": preset, "ba_in_background": background}, vo_only=True)
+    pipe = build_session(seq.camera, config)
     t0, c0 = time.perf_counter(), time.process_time()
     for f in frames:
         pipe.process(f)

@@ -37,8 +37,8 @@ import numpy as np
 from metricslam.datasets import open_sequence
 from metricslam.evaluation.kitti_metric import SHORT_LENGTHS_M, segment_errors
 from metricslam.geometry import so3
-from metricslam.slam.pipeline import SlamPipeline
-from metricslam.slam.vo.config import VOConfig
+from metricslam.slam.session_builder import build_session
+from metricslam.slam.system_config import SystemConfig
 
 LK = {"winSize": (21, 21), "maxLevel": 3,
       "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
@@ -92,7 +92,7 @@ def stereo_pnp_rotation(K: np.ndarray, baseline_m: float, left: np.ndarray, righ
 
 
 def run_vo(seq, n: int, preset: str) -> np.ndarray:
-    pipe = SlamPipeline(seq.camera, VOConfig.preset(preset, ba_in_background=False))
+    pipe = build_session(seq.camera, SystemConfig(vo={"preset": preset}, vo_only=True, deterministic=True))
     for i in range(n):
         pipe.process(seq[i])
     pipe.close()
@@ -119,10 +119,10 @@ def segments_table(gt: np.ndarray, est: np.ndarray) -> list[dict]:
     seg = segment_errors(gt, est, SHORT_LENGTHS_M)
     rows = []
     for k in range(len(seg)):
-        f, l = int(seg.first_frame[k]), int(seg.last_frame[k])
-        E = np.linalg.inv(np.linalg.inv(est[f]) @ est[l]) @ (np.linalg.inv(gt[f]) @ gt[l])
+        first, last = int(seg.first_frame[k]), int(seg.last_frame[k])
+        E = np.linalg.inv(np.linalg.inv(est[first]) @ est[last]) @ (np.linalg.inv(gt[first]) @ gt[last])
         w = np.degrees(so3.log(E[:3, :3]))
-        rows.append({"first": f, "last": l, "L": float(seg.length_m[k]),
+        rows.append({"first": first, "last": last, "L": float(seg.length_m[k]),
                      "r_deg_per_100m": float(np.degrees(seg.r_err_rad_per_m[k]) * 100),
                      "err_pitch_yaw_roll_deg": [round(float(v), 4) for v in w]})
     return rows
@@ -145,7 +145,10 @@ def three_cornered_hat(e_a: np.ndarray, e_b: np.ndarray) -> dict:
     """Per-axis noise sigmas (mdeg per frame pair) of GT, A and B from A−GT and B−GT errors (N, 3),
     assuming independent errors (Allan/Gray three-cornered hat on the mean-removed series)."""
     va, vb, vab = np.var(e_a, axis=0), np.var(e_b, axis=0), np.var(e_a - e_b, axis=0)
-    sig = lambda v: [round(float(np.sqrt(max(x, 0.0))), 1) for x in v]
+
+    def sig(v):
+        return [round(float(np.sqrt(max(x, 0.0))), 1) for x in v]
+
     return {"gt": sig((va + vb - vab) / 2), "a": sig((va + vab - vb) / 2), "b": sig((vb + vab - va) / 2)}
 
 
@@ -218,7 +221,10 @@ def analyse(path: Path, n_max: int | None, n_draws: int = 50) -> dict:
     R_st = rel_rot(stereo)
     e_vo, e_ess, e_st = err_pyr_mdeg(R_gt, R_vo), err_pyr_mdeg(R_gt, R_ess), err_pyr_mdeg(R_gt, R_st)
     w_gt = np.degrees(np.array([so3.log(R) for R in R_gt]))
-    yaw = lambda R: np.degrees(np.array([so3.log(r) for r in R]))[:, 1]
+
+    def yaw(R):
+        return np.degrees(np.array([so3.log(r) for r in R]))[:, 1]
+
     # essential-matrix chain with GT translation lengths (rotation only matters for r_rel)
     ess_chain = [np.eye(4)]
     for i, R in enumerate(R_ess):

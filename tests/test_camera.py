@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from metricslam import disparity
 from metricslam.camera import PinholeCamera
@@ -72,9 +73,9 @@ def test_in_image_edges():
 
 
 def test_camera_is_frozen_and_validates():
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="frozen"):
         KITTI.fx_px = 1.0  # type: ignore[misc]
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="fx_px"):
         PinholeCamera(fx_px=-1, fy_px=1, cx_px=0, cy_px=0, width_px=10, height_px=10)
     with pytest.raises(CameraError):
         PinholeCamera.from_K(np.eye(2), 10, 10)

@@ -20,6 +20,7 @@ import yaml
 
 compose_spec = pytest.importorskip("compose_spec", reason="pip install compose-spec (dev extra)")
 
+from metricslam.slam.config_file import load_system_config  # noqa: E402
 from metricslam_depth.settings import DepthServiceSettings  # noqa: E402
 from metricslam_slam.settings import SlamServiceSettings  # noqa: E402
 
@@ -90,14 +91,20 @@ def test_environment_names_are_settings_fields(compose: dict) -> None:
                 if name.startswith(prefix):
                     assert name[len(prefix):].lower() in names, f"{name} is not a setting"
                     seen += 1
+            if name.startswith("METRICSLAM_"):
+                assert "__" in name, f"{name} is not a METRICSLAM_<SECTION>__<FIELD> variable"
+                seen += 1
     assert seen >= 8
 
 
 def test_environment_builds_valid_settings(compose: dict, monkeypatch) -> None:
-    for name, value in compose["services"]["slam"]["environment"].items():
-        monkeypatch.setenv(name, str(value))
+    environment = {name: str(value) for name, value in compose["services"]["slam"]["environment"].items()}
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
     settings = SlamServiceSettings()
     assert settings.zenoh_endpoint == "tcp/zenoh:7447" and settings.depth_url == "http://depth-lb:8100"
+    config = load_system_config(env=environment)  # every METRICSLAM_* variable is a real field
+    assert config.vo.preset == "kitti" and config.use_scale and config.queues.frames == 8
 
 
 def test_health_replicas_and_load_balancer(compose: dict, repo_root: Path) -> None:

@@ -31,3 +31,17 @@ def test_cli_help_lists_commands():
     out = subprocess.run([sys.executable, "-m", "metricslam.cli.main", "--help"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "eval" in out.stdout
+
+
+def test_import_contract_lists_every_core_module(repo_root):
+    """The static import contract (pyproject ``[tool.importlinter]``, run by ``make lint``) names
+    the core's modules one by one; a new core module must be added there."""
+    import pkgutil
+    import tomllib
+
+    import metricslam
+
+    contracts = tomllib.loads((repo_root / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    (listed,) = [c["source_modules"] for c in contracts if c["forbidden_modules"] == ["metricslam.cli"]]
+    core = {f"metricslam.{m.name}" for m in pkgutil.iter_modules(metricslam.__path__) if m.name != "cli"}
+    assert set(listed) == core

@@ -20,7 +20,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 if str(BENCH) not in sys.path:
     sys.path.insert(0, str(BENCH))
 
-import landmark_depth as ld
+import landmark_depth as ld  # noqa: E402
 
 FRAMES = 13  # stride 3, gap 3: 4 frame pairs
 

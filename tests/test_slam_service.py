@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from metricslam.camera import PinholeCamera
+from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.types import TrackingState
 from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, encode
@@ -52,11 +53,12 @@ def stack(request):
     client = open_client(endpoint)
     services = []
 
-    def start_service(factory=None, **overrides):
-        overrides.setdefault("queue_size", 64)  # bursts below are faster than any real camera
-        settings = SlamServiceSettings(zenoh_endpoint=endpoint, depth_url=None, use_scale=False,
+    def start_service(factory=None, queue_size=64, **overrides):
+        # queue of 64 frames: bursts below are faster than any real camera
+        settings = SlamServiceSettings(zenoh_endpoint=endpoint, depth_url=None,
                                        session_kind="identity", status_period_s=0.2, **overrides)
-        svc = SlamService(settings, session_factory=factory).start()
+        config = SystemConfig(depth={"use_scale": False}, queues={"frames": queue_size})
+        svc = SlamService(settings, session_factory=factory, config=config).start()
         services.append(svc)
         deadline = time.monotonic() + 5  # until every started service answers through the router
         while len(list(client.get(keys.HEALTH_KEY, timeout=0.5))) < len(services) \
@@ -73,7 +75,7 @@ def stack(request):
 
 def test_pose_for_every_frame_status_and_trajectory(stack) -> None:
     _, client, start_service = stack
-    svc = start_service()
+    start_service()
     recorder = PoseRecorder(client, "cam0")
     pub = FramePublisher(client, "cam0")
     n = 30

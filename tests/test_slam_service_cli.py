@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from metricslam.errors import DepthSourceError
+from metricslam.slam.system_config import SystemConfig
 from metricslam.trajectory.io import read_tum
 from metricslam_slam.client import query_health
 from metricslam_slam.http_depth import HttpDepthSource
@@ -29,8 +30,8 @@ ENDPOINT = "tcp/127.0.0.1:17460"
 @pytest.fixture(scope="module")
 def service():
     router = open_router(ENDPOINT)
-    svc = SlamService(SlamServiceSettings(zenoh_endpoint=ENDPOINT, depth_url=None, use_scale=False,
-                                          session_kind="identity", queue_size=64)).start()
+    svc = SlamService(SlamServiceSettings(zenoh_endpoint=ENDPOINT, depth_url=None, session_kind="identity"),
+                      config=SystemConfig(depth={"use_scale": False}, queues={"frames": 64})).start()
     client = open_client(ENDPOINT)
     deadline = time.monotonic() + 5
     while query_health(client, 0.5) is None and time.monotonic() < deadline:

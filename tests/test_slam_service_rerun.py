@@ -11,6 +11,7 @@ import pytest
 rr = pytest.importorskip("rerun", reason="rerun-sdk is the optional viz extra")
 
 from metricslam.datasets import open_sequence  # noqa: E402
+from metricslam.slam.system_config import SystemConfig  # noqa: E402
 from metricslam_slam.client import FramePublisher, PoseRecorder, query_health  # noqa: E402
 from metricslam_slam.router import open_router  # noqa: E402
 from metricslam_slam.service import SlamService  # noqa: E402
@@ -28,8 +29,8 @@ def test_rerun_recording_has_the_entities(shared_data: Path, tmp_path: Path) -> 
     n = 30
     rrd = tmp_path / "live.rrd"
     router = open_router(ENDPOINT)
-    svc = SlamService(SlamServiceSettings(zenoh_endpoint=ENDPOINT, depth_url=None, use_scale=True,
-                                          queue_size=64, rerun=str(rrd))).start()
+    svc = SlamService(SlamServiceSettings(zenoh_endpoint=ENDPOINT, depth_url=None, rerun=str(rrd)),
+                      config=SystemConfig(queues={"frames": 64})).start()
     client = open_client(ENDPOINT)
     try:
         deadline = time.monotonic() + 10
@@ -40,7 +41,7 @@ def test_rerun_recording_has_the_entities(shared_data: Path, tmp_path: Path) -> 
         for i in range(n):
             frame = seq[i]
             publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)
-            recorder.wait_for(lambda r: len(r.poses) >= i - 2, 30)
+            recorder.wait_for(lambda r, i=i: len(r.poses) >= i - 2, 30)
         assert recorder.wait_frames(n, 60)
         recorder.close()
         publisher.close()

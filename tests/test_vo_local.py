@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from metricslam.camera import PinholeCamera
 from metricslam.cli.main import main
@@ -35,7 +36,7 @@ def test_config_rejects_stale_keys_and_bad_values() -> None:
         VOConfig.preset("kitti", klt_window_px=20)  # must be odd
     with pytest.raises(ConfigError, match="unknown VO preset"):
         VOConfig.preset("nuscenes")
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="frozen"):
         VOConfig.preset("kitti").window_size = 3  # frozen
 
 

@@ -72,10 +72,6 @@ class ImageError(MetricSlamError):
     """An image could not be decoded or has an unsupported shape/dtype."""
 
 
-class VOError(MetricSlamError):
-    """Local visual odometry failed internally (never raised out of ``process``)."""
-
-
 class GraphError(MetricSlamError):
     """The global pose graph rejected an input or failed to solve."""
 

@@ -53,11 +53,6 @@ class AdmissionGate:
         self._waiting = 0
         self._executor = ThreadPoolExecutor(max_concurrency, thread_name_prefix="depth-infer")
 
-    @property
-    def waiting(self) -> int:
-        """Requests waiting for a slot right now."""
-        return self._waiting
-
     async def run(self, fn: Callable[[], T]) -> T:
         """Run ``fn()`` on a worker thread once a slot is free; return its result.
 

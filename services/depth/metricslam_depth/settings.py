@@ -15,6 +15,7 @@ from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from metricslam.errors import ConfigError
+from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +33,10 @@ class DepthServiceSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="DEPTH_", frozen=True, extra="forbid")
 
-    host: str = Field("127.0.0.1", description="interface to bind (0.0.0.0 for all)")
-    port: int = Field(8100, ge=0, le=65535, description="TCP port (0 = any free port)")
+    host: str = Field(DEFAULT_DEPTH_HOST, description="interface to bind (0.0.0.0 for all)")
+    port: int = Field(DEFAULT_DEPTH_PORT, ge=0, le=65535,
+                      description="TCP port (0 = any free port); the SLAM service's default "
+                      "depth_url points here")
     model_path: Path | None = Field(
         None, description="ONNX model file; None = the int8 model shipped inside metricslam "
         "(metricslam.depth.DEFAULT_MODEL_PATH; the float32 one is FLOAT32_MODEL_PATH)"

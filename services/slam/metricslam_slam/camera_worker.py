@@ -32,13 +32,14 @@ class CameraWorker:
         camera_id: the key chunk of ``metricslam/<camera_id>/frame``.
         session_factory: ``(camera_id, camera) -> SlamSession``, called on the first valid frame.
         publish: sends a message on ``metricslam/<camera_id>/<topic>``.
-        queue_size: frames held; on overflow the oldest is dropped and counted.
+        queue_size: frames held (``SystemConfig.queues.frames``); on overflow the oldest is
+            dropped and counted.
         keyframe_images: attach the image to keyframe messages.
         on_estimate: called after each processed frame (the optional live viewer).
     """
 
     def __init__(self, camera_id: str, session_factory: Callable[[str, PinholeCamera], SlamSession],
-                 publish: Publish, queue_size: int = 8, keyframe_images: bool = False,
+                 publish: Publish, queue_size: int, keyframe_images: bool = False,
                  on_estimate: Callable[[str, Frame, PoseEstimate, SlamSession], None] | None = None) -> None:
         self.camera_id = camera_id
         self._factory = session_factory
@@ -143,7 +144,9 @@ class CameraWorker:
             return [] if self._session is None else list(self._session.trajectory())
 
     def status(self, depth_url: str | None, depth_reachable: bool | None,
-               depth_error: str | None) -> StatusMessage:
+               depth_error: str | None, depth_outages: int = 0) -> StatusMessage:
+        """This camera's :class:`StatusMessage`; the ``depth_*`` fields describe the service's
+        link to its depth service (``depth_outages``: times it became unreachable)."""
         lat = np.array(self._latencies_ms) if self._latencies_ms else None
         times = list(self._done_times)
         fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
@@ -161,7 +164,7 @@ class CameraWorker:
             latency_ms_p99=None if lat is None else float(np.percentile(lat, 99)),
             tracking_state=self.last_state, scale_established=self.scale_established,
             keyframes=self.keyframes, depth_url=depth_url, depth_reachable=depth_reachable,
-            depth_error=depth_error, session_stats=stats)
+            depth_error=depth_error, depth_outages=depth_outages, session_stats=stats)
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Finish the queued frames, stop the thread, close the session."""

@@ -5,9 +5,11 @@
 (1/m) for that camera, covering the whole image. Connection failures, timeouts and 5xx/429 are
 retried a bounded number of times with a short backoff, then :class:`DepthSourceError` is raised —
 the global back end treats that as "no scale factor for this keyframe" and tracking goes on.
-``reachable`` (None until first use) and ``last_error`` say whether the service answers; the SLAM
-service reports them on ``…/status`` and calls :meth:`probe` (``GET /readyz``) periodically so the
-status recovers as soon as the depth service is back.
+``reachable`` (None until first use), ``last_error`` and ``outages`` (times it went from not
+known-bad to unreachable) say whether the service answers; the SLAM service probes once at start
+(:meth:`probe`, ``GET /readyz``), reports them on ``…/status`` and probes periodically so the
+status recovers as soon as the depth service is back. A change of state is logged once (an
+error when it is lost: no learned scale until it answers), never once per request.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ class HttpDepthSource:
     """Client of the depth service. Thread-safe (one pooled ``httpx.Client``).
 
     Args:
-        url: base URL, e.g. ``http://127.0.0.1:8000``.
+        url: base URL, e.g. ``http://127.0.0.1:8100``.
         timeout_s: read timeout of one request (s).
         connect_timeout_s: connect timeout (s); short, so a dead service is noticed fast.
         retries: extra attempts after the first for connection errors, timeouts, 429/5xx.
@@ -51,6 +53,7 @@ class HttpDepthSource:
         self._last_error: str | None = None
         self.requests_ok = 0
         self.requests_failed = 0
+        self.outages = 0
 
     # -- state -------------------------------------------------------------------------------
     @property
@@ -65,9 +68,13 @@ class HttpDepthSource:
     def _mark(self, ok: bool, error: str | None = None) -> None:
         with self._lock:
             if ok and self._reachable is False:
-                log.info("depth service at %s is reachable again", self.url)
+                log.warning("depth service at %s is reachable again: learned scale factors resume",
+                            self.url)
             if not ok and self._reachable is not False:
-                log.warning("depth service at %s unreachable: %s", self.url, error)
+                self.outages += 1
+                log.error("depth service at %s is NOT reachable (%s): keyframes get NO learned "
+                          "scale factors until it answers; start it (`metricslam depth-service`) "
+                          "or point SLAM_DEPTH_URL / --depth-url at it", self.url, error)
             self._reachable = ok
             self._last_error = None if ok else error
 

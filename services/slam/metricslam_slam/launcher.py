@@ -26,6 +26,7 @@ from typing import Callable
 
 import httpx
 
+from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT, depth_url
 from metricslam.errors import ServiceError
 from metricslam_slam.zenoh_config import check_endpoint
 
@@ -111,14 +112,18 @@ class Stack:
             without a depth service (the SLAM service then uses the in-process model, or no
             scale with ``use_scale=False``).
         use_scale, preset, session_kind: passed to the SLAM service.
+        config_path: the SLAM service's system config file (``--config``; else its children
+            inherit ``METRICSLAM_CONFIG`` from this process's environment).
         log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log`` (else discarded).
         rerun: live view target of the SLAM service (``web`` or ``FILE.rrd``).
     """
 
-    def __init__(self, zenoh_endpoint: str, depth_port: int | None = 8100, depth_host: str = "127.0.0.1",
+    def __init__(self, zenoh_endpoint: str, depth_port: int | None = DEFAULT_DEPTH_PORT,
+                 depth_host: str = DEFAULT_DEPTH_HOST,
                  use_scale: bool = True, preset: str | None = None, session_kind: str = "pipeline",
                  log_dir: str | None = None, restart_delay_s: float = 1.0,
-                 ready_timeout_s: float = 60.0, rerun: str | None = None) -> None:
+                 ready_timeout_s: float = 60.0, rerun: str | None = None,
+                 config_path: str | None = None) -> None:
         check_endpoint(zenoh_endpoint)
         logging.getLogger("httpx").setLevel(logging.WARNING)
         self.zenoh_endpoint = zenoh_endpoint
@@ -130,7 +135,7 @@ class Stack:
         zhost = "127.0.0.1" if zhost in ("0.0.0.0", "[::]") else zhost
         py = [sys.executable, "-m"]
         cli = py + ["metricslam.cli.main"]
-        self.depth_url = None if depth_port is None else f"http://{depth_host}:{depth_port}"
+        self.depth_url = None if depth_port is None else depth_url(depth_host, depth_port)
         self.children = [Child("zenoh-router", py + ["metricslam_slam.router", "--listen", zenoh_endpoint],
                                lambda: _port_open(zhost, int(zport)), zenoh_endpoint)]
         if self.depth_url is not None and use_scale:
@@ -145,6 +150,8 @@ class Stack:
             slam += ["--preset", preset]
         if rerun:
             slam += ["--rerun", rerun]
+        if config_path:
+            slam += ["--config", str(config_path)]
         self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
                                    f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"))
         if log_dir:

@@ -54,7 +54,7 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
                 if delay > 0:
                     time.sleep(delay)
             if recorder is not None and not recorder.wait_for(
-                    lambda r: sum(j >= start for j in r.poses) >= k - max_in_flight, timeout_s=10.0):
+                    lambda r, k=k: sum(j >= start for j in r.poses) >= k - max_in_flight, timeout_s=10.0):
                 log.warning("no poses for 10 s: back-pressure off for the rest of the replay")
                 recorder.close()
                 recorder = None

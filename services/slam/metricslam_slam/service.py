@@ -18,11 +18,13 @@ import numpy as np
 import zenoh
 
 from metricslam.errors import CodecError, ServiceError
+from metricslam.slam.config_file import load_system_config
+from metricslam.slam.system_config import SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
 from metricslam_slam.camera_worker import CameraWorker
 from metricslam_slam.sessions import SessionFactory, make_session_factory
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import open_client
 
 log = logging.getLogger(__name__)
@@ -32,16 +34,20 @@ class SlamService:
     """Run with ``with SlamService(settings) as svc: svc.wait()`` (or ``start()``/``stop()``).
 
     Args:
-        settings: service settings.
+        settings: service settings (network, depth client, status).
         session_factory: overrides the factory built from ``settings`` (tests, embedding).
         depth_source: overrides the HTTP depth source built from ``settings.depth_url``.
+        config: what every camera's session is built from (:func:`build_session`); None:
+            :func:`load_system_config` (``$METRICSLAM_CONFIG``, ``METRICSLAM_*`` variables).
     """
 
     def __init__(self, settings: SlamServiceSettings, session_factory: SessionFactory | None = None,
-                 depth_source: object | None = None) -> None:
+                 depth_source: object | None = None, config: SystemConfig | None = None) -> None:
+        check_retired_environment()
         self.settings = settings
-        if depth_source is None and settings.use_scale and settings.depth_url and \
-                settings.session_kind == "pipeline":
+        self.config = config if config is not None else load_system_config()
+        use_scale = self.config.use_scale and settings.session_kind == "pipeline"
+        if depth_source is None and use_scale and settings.depth_url:
             from metricslam_slam.http_depth import HttpDepthSource
             depth_source = HttpDepthSource(
                 settings.depth_url, timeout_s=settings.depth_timeout_s,
@@ -51,14 +57,14 @@ class SlamService:
         if settings.rerun:
             from metricslam_slam.rerun_view import RerunView, TappedDepthSource
             self.viewer = RerunView(settings.rerun)
-            if settings.use_scale and settings.session_kind == "pipeline":
+            if use_scale:
                 if depth_source is None:  # make the in-process model explicit so it can be tapped
                     from metricslam.slam.depth_source import OnnxDepthSource
-                    depth_source = OnnxDepthSource()
+                    depth_source = OnnxDepthSource(self.config.depth.model_path)
                 depth_source = TappedDepthSource(depth_source, self.viewer.log_depth)
         self.depth_source = depth_source
         self._factory = session_factory or make_session_factory(
-            settings.session_kind, settings.preset, settings.use_scale, depth_source)
+            settings.session_kind, self.config, depth_source)
         self._workers: dict[str, CameraWorker] = {}
         self._workers_lock = threading.Lock()
         self._stopped = threading.Event()
@@ -72,6 +78,8 @@ class SlamService:
     def start(self, connect_timeout_s: float = 30.0) -> "SlamService":
         logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per probe is noise
         log.info("SLAM service settings: %s", self.settings.model_dump())
+        log.info("SLAM system config (%s): %s", self.config.mode, self.config.model_dump(mode="json"))
+        self._check_depth_link()
         deadline = time.monotonic() + connect_timeout_s
         while True:  # the router may come up after us (compose, `up`)
             try:
@@ -145,7 +153,7 @@ class SlamService:
             if worker is None:
                 worker = CameraWorker(camera_id, self._factory,
                                       lambda topic, msg, cid=camera_id: self._put(cid, topic, msg),
-                                      self.settings.queue_size, self.settings.keyframe_images,
+                                      self.config.queues.frames, self.settings.keyframe_images,
                                       self._on_estimate if self.viewer is not None else None)
                 self._workers[camera_id] = worker
             return worker
@@ -201,10 +209,33 @@ class SlamService:
     def health(self) -> dict:
         with self._workers_lock:
             cameras = sorted(self._workers)
+        depth_url, reachable, _, outages = self._depth_link()
         return {"ready": self._session is not None and not self._stopped.is_set(),
-                "cameras": cameras, "unrouted": self.unrouted,
-                "depth_url": self.settings.depth_url if self.depth_source is not None else None,
-                "depth_reachable": getattr(self.depth_source, "reachable", None)}
+                "cameras": cameras, "unrouted": self.unrouted, "depth_url": depth_url,
+                "depth_reachable": reachable, "depth_outages": outages}
+
+    # -- depth link --------------------------------------------------------------------------
+    def _depth_link(self) -> tuple[str | None, bool | None, str | None, int]:
+        """``(depth_url, reachable, last_error, outages)`` of the remote depth source; all
+        None/0 without one (scale off, or the in-process model)."""
+        source = self.depth_source
+        if source is None or not hasattr(source, "reachable"):
+            return None, None, None, 0
+        return (self.settings.depth_url, getattr(source, "reachable", None),
+                getattr(source, "last_error", None), int(getattr(source, "outages", 0)))
+
+    def _check_depth_link(self) -> None:
+        """Say at start, once, where learned scale comes from; an unreachable depth service is
+        logged as an error by the source itself (and again only when its state changes)."""
+        if not (self.config.use_scale and self.settings.session_kind == "pipeline"):
+            log.info("learned scale factors are OFF (%s): poses are in the VO's arbitrary scale",
+                     self.config.mode)
+            return
+        probe = getattr(self.depth_source, "probe", None)
+        if not callable(probe):
+            log.info("learned scale factors from the in-process depth model")
+        elif probe():
+            log.info("learned scale factors from the depth service at %s", self.settings.depth_url)
 
     # -- status ------------------------------------------------------------------------------
     def _status_loop(self) -> None:
@@ -215,13 +246,12 @@ class SlamService:
             self._publish_status()
 
     def _publish_status(self) -> None:
-        depth_url = self.settings.depth_url if self.depth_source is not None else None
-        reachable = getattr(self.depth_source, "reachable", None)
-        error = getattr(self.depth_source, "last_error", None)
+        depth_url, reachable, error, outages = self._depth_link()
         with self._workers_lock:
             workers = list(self._workers.values())
         for worker in workers:
             try:
-                self._put(worker.camera_id, "status", worker.status(depth_url, reachable, error))
+                self._put(worker.camera_id, "status",
+                          worker.status(depth_url, reachable, error, outages))
             except Exception:  # status is best effort, never fatal
                 log.exception("status for camera %s failed", worker.camera_id)

@@ -1,8 +1,9 @@
 """Builds one :class:`metricslam.slam.types.SlamSession` per camera for the service.
 
-``pipeline``: the real SLAM core (``SlamPipeline`` + the global back end with loop closure; with
-scale on, learned scale factors from ``depth_source`` — the HTTP depth service — or, when that is
-None, the in-process ONNX model). ``identity``: transport only — every frame gets the identity pose;
+``pipeline``: the real SLAM core, assembled by :func:`metricslam.slam.session_builder.build_session`
+from the service's :class:`~metricslam.slam.system_config.SystemConfig` (with scale on, learned
+scale factors from ``depth_source`` — the HTTP depth service — or, when that is None, the
+in-process ONNX model). ``identity``: transport only — every frame gets the identity pose;
 used to measure the service's Zenoh/queue overhead without the VO cost.
 """
 
@@ -15,6 +16,8 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.errors import ServiceError
+from metricslam.slam.session_builder import build_session
+from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.types import PoseEstimate, SlamSession, TrackingState
 
 SessionFactory = Callable[[str, PinholeCamera], SlamSession]
@@ -42,28 +45,27 @@ class IdentitySession:
         pass
 
 
-def make_session_factory(kind: str, preset: str = "kitti", use_scale: bool = True,
+def make_session_factory(kind: str, config: SystemConfig | None = None,
                          depth_source: object | None = None) -> SessionFactory:
     """A ``(camera_id, camera) -> SlamSession`` factory.
 
+    Args:
+        kind: ``pipeline`` (:func:`metricslam.slam.session_builder.build_session`, the same
+            builder offline runs use) or ``identity``.
+        config: the sessions' system configuration (default: :class:`SystemConfig` defaults).
+        depth_source: shared by every session (the HTTP depth client); None: each session runs
+            the in-process model when ``config.depth.use_scale``.
+
     Raises:
-        ServiceError: the SLAM core is not importable (``kind="pipeline"``).
+        ServiceError: unknown ``kind``.
     """
     if kind == "identity":
         return lambda camera_id, camera: IdentitySession()
     if kind != "pipeline":
         raise ServiceError(f"unknown session kind {kind!r}; use 'pipeline' or 'identity'")
-    try:
-        from metricslam.slam.backend_factory import make_backend
-        from metricslam.slam.pipeline import SlamPipeline
-        from metricslam.slam.vo.config import VOConfig
-    except ImportError as exc:
-        raise ServiceError(f"the SLAM core is not available ({exc}); "
-                           "use session_kind=identity for transport-only runs") from None
-    vo_config = VOConfig.preset(preset)
+    config = config if config is not None else SystemConfig()
 
     def factory(camera_id: str, camera: PinholeCamera) -> SlamSession:
-        backend = make_backend(camera, use_scale=use_scale, depth_source=depth_source)
-        return SlamPipeline(camera, vo_config, backend=backend)
+        return build_session(camera, config, depth_source=depth_source)
 
     return factory

@@ -1,29 +1,41 @@
 """Settings of the SLAM service, from the environment (prefix ``SLAM_``) or the CLI.
 
-Example: ``SLAM_ZENOH_ENDPOINT=tcp/router:7447 SLAM_DEPTH_URL=http://depth:8000 metricslam
-slam-service``. Algorithm parameters are not here: they are the frozen ``VOConfig`` presets.
+Example: ``SLAM_ZENOH_ENDPOINT=tcp/router:7447 SLAM_DEPTH_URL=http://depth:8100 metricslam
+slam-service``. Only the service's own plumbing is here (network, depth client, status, viewer).
+What the SLAM sessions do — VO preset, graph, loops, learned scale on/off, queue sizes — is the
+:class:`~metricslam.slam.system_config.SystemConfig` that offline runs use too (``--config
+FILE.yaml`` / ``METRICSLAM_CONFIG``, ``METRICSLAM_*`` variables; :mod:`metricslam.slam.config_file`).
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from metricslam.endpoints import DEFAULT_DEPTH_URL, DEFAULT_ZENOH_ENDPOINT
+from metricslam.errors import ConfigError
+
+#: service variables that moved into the system config, and where they live now
+RETIRED_ENV = {"SLAM_PRESET": "METRICSLAM_VO__PRESET", "SLAM_USE_SCALE": "METRICSLAM_DEPTH__USE_SCALE",
+               "SLAM_QUEUE_SIZE": "METRICSLAM_QUEUES__FRAMES"}
+
 
 class SlamServiceSettings(BaseSettings):
-    """Service-level settings (network, queues, depth client). Logged at start-up.
+    """Service-level settings (network, depth client, status, viewer). Logged at start-up.
 
     Attributes:
         zenoh_endpoint: router endpoint to connect to, e.g. ``tcp/127.0.0.1:7447``.
         zenoh_mode: ``client`` (connect to a router) or ``peer``.
-        depth_url: base URL of the depth service; None runs without learned scale.
-        use_scale: add learned scale factors (False = the ``--no-scale`` baseline).
-        preset: ``VOConfig`` preset name.
+        depth_url: base URL of the depth service (default: where a bare ``metricslam
+            depth-service`` listens, :data:`metricslam.endpoints.DEFAULT_DEPTH_URL`); None
+            runs the depth model in-process (learned scale on/off is ``depth.use_scale`` of the
+            system config).
         session_kind: ``pipeline`` (the real SLAM core) or ``identity`` (transport only:
             identity poses, for transport benchmarks).
-        queue_size: frames buffered per camera; when full the oldest is dropped and counted.
         status_period_s: how often ``…/status`` is published (and the depth service probed).
         depth_timeout_s / depth_connect_timeout_s / depth_retries / depth_backoff_s: HTTP client.
         keyframe_images: attach the keyframe image to ``…/keyframe`` messages.
@@ -34,13 +46,10 @@ class SlamServiceSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SLAM_", frozen=True, extra="forbid")
 
-    zenoh_endpoint: str = "tcp/127.0.0.1:7447"
+    zenoh_endpoint: str = DEFAULT_ZENOH_ENDPOINT
     zenoh_mode: Literal["client", "peer"] = "client"
-    depth_url: str | None = "http://127.0.0.1:8000"
-    use_scale: bool = True
-    preset: str = "kitti"
+    depth_url: str | None = DEFAULT_DEPTH_URL
     session_kind: Literal["pipeline", "identity"] = "pipeline"
-    queue_size: int = Field(default=8, ge=1, le=10_000)
     status_period_s: float = Field(default=1.0, gt=0)
     depth_timeout_s: float = Field(default=5.0, gt=0)
     depth_connect_timeout_s: float = Field(default=0.5, gt=0)
@@ -51,4 +60,16 @@ class SlamServiceSettings(BaseSettings):
     rerun: str | None = None
 
 
+def check_retired_environment(env: Mapping[str, str] | None = None) -> None:
+    """Refuse ``SLAM_*`` variables that moved into the system config (pydantic-settings would
+    ignore them silently, e.g. a ``SLAM_USE_SCALE=false`` would run WITH learned scale).
 
+    Raises:
+        ConfigError: naming each retired variable and its replacement.
+    """
+    env = os.environ if env is None else env
+    stale = sorted(set(env) & set(RETIRED_ENV))
+    if stale:
+        raise ConfigError("retired environment variable(s) " + ", ".join(
+            f"{name} (use {RETIRED_ENV[name]})" for name in stale)
+            + ": algorithm settings of the SLAM sessions are the system config now")

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -20,7 +22,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Grabs frames from an OpenCV video device (or a video file) and publishes them "
         "on metricslam/<camera_id>/frame until Ctrl-C.")
     p.add_argument("--device", default="0", help="OpenCV device index or a video file/URL")
-    p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
     p.add_argument("--fx", type=float, help="focal length x (px) at the capture resolution")
     p.add_argument("--fy", type=float, help="focal length y (px); default = fx")

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -22,8 +24,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Run the depth inference service (FastAPI + onnxruntime under uvicorn). "
         "Flags override DEPTH_* environment variables; see docs/depth_service.md.",
     )
-    p.add_argument("--host", help="interface to bind (default 127.0.0.1; env DEPTH_HOST)")
-    p.add_argument("--port", type=int, help="TCP port (default 8100; env DEPTH_PORT)")
+    p.add_argument("--host", help=f"interface to bind (default {DEFAULT_DEPTH_HOST}; env DEPTH_HOST)")
+    p.add_argument("--port", type=int, help=f"TCP port (default {DEFAULT_DEPTH_PORT}; env DEPTH_PORT)")
     p.add_argument("--model", dest="model_path", metavar="PATH",
                    help="ONNX model file (default: the shipped model; env DEPTH_MODEL_PATH)")
     p.add_argument("--threads", type=int, help="onnxruntime intra-op threads (env DEPTH_THREADS)")

@@ -13,13 +13,15 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "poses", help="record live poses from zenoh into a KITTI/TUM file",
         description="Subscribes to metricslam/<camera_id>/pose until --frames poses arrived or "
         "--timeout passed, and writes them in frame order.")
-    p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
     p.add_argument("--out", required=True, metavar="FILE")
     p.add_argument("--frames", type=int, required=True, metavar="N", help="poses to wait for")
     p.add_argument("--timeout", type=float, default=120.0, metavar="S")

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -21,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Publishes a dataset folder (KITTI, EuRoC, TUM, synth output) frame by frame "
         "on metricslam/<camera_id>/frame at --rate Hz, then exits.")
     p.add_argument("seq_dir", metavar="SEQ_DIR")
-    p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (0: as fast as possible)")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
     p.add_argument("--start", type=int, default=0, metavar="K", help="first frame to publish")

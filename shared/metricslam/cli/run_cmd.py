@@ -48,18 +48,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--vo-only", action="store_true",
                    help="local VO only, no global graph (implies --no-scale)")
     p.add_argument("--preset", default=None, choices=("kitti", "euroc", "tum", "synth"),
-                   help="VO parameter preset (default: from the dataset format)")
+                   help="VO parameter preset (default: the config's vo.preset, else from the "
+                        "dataset format)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
                    help="process only the first N frames")
     p.add_argument("--model", default=None, metavar="PATH",
-                   help="ONNX depth model (default: the shipped one)")
+                   help="ONNX depth model (default: the config's depth.model_path, else the "
+                        "shipped one)")
     p.add_argument("--depth-queue", type=int, default=None, metavar="N",
-                   help="keyframes that may wait for depth (default 256). Offline runs wait "
-                        "instead of dropping, so results do not depend on machine load; the live "
-                        "service keeps a short queue and drops the oldest")
+                   help="keyframes that may wait for depth (default: the config's "
+                        "graph.depth_queue_size, else OFFLINE_DEPTH_QUEUE_SIZE of "
+                        "metricslam.slam.graph.config, 256). Offline runs wait instead of "
+                        "dropping, so results do not depend on machine load; the live service "
+                        "keeps a short queue and drops the oldest")
     p.add_argument("--config", metavar="FILE.yaml",
-                   help="VO and global-graph parameter overrides (sections 'vo:' and 'graph:'; "
-                        "see metricslam.slam.config_file); checked before any frame is processed")
+                   help="system configuration (sections vo, graph, depth, queues; see "
+                        "metricslam.slam.config_file; default $METRICSLAM_CONFIG); METRICSLAM_* "
+                        "environment variables and these flags override it; checked before any "
+                        "frame is processed")
     p.add_argument("--deterministic", action="store_true",
                    help="run bundle adjustment, depth and the global solve in the frame loop "
                         "instead of worker threads: the same input gives the same trajectory, "
@@ -70,7 +76,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
-_PRESET_BY_FORMAT = {"kitti": "kitti", "kitti_raw_depth": "kitti", "euroc": "euroc", "tum": "tum"}
+def config_from_args(args: argparse.Namespace):
+    """The run's :class:`~metricslam.slam.system_config.SystemConfig`: class defaults → the
+    offline depth queue → ``--config`` (or ``$METRICSLAM_CONFIG``) → ``METRICSLAM_*`` → flags."""
+    from metricslam.slam.config_file import load_system_config
+    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE
+
+    flags: dict = {}
+    if args.preset is not None:
+        flags["vo"] = {"preset": args.preset}
+    if args.depth_queue is not None:
+        flags["graph"] = {"depth_queue_size": args.depth_queue}
+    if args.model is not None:
+        flags.setdefault("depth", {})["model_path"] = args.model
+    if args.no_scale:
+        flags.setdefault("depth", {})["use_scale"] = False
+    if args.vo_only:
+        flags["vo_only"] = True
+    if args.deterministic:
+        flags["deterministic"] = True
+    return load_system_config(args.config, profile={"graph": {"depth_queue_size": OFFLINE_DEPTH_QUEUE_SIZE}},
+                              overrides=flags)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,41 +108,20 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from metricslam.datasets import detect_format, open_sequence
+    from metricslam.datasets import open_sequence
     from metricslam.errors import ConfigError
-    from metricslam.slam.config_file import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, load_overrides
-    from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE
-    from metricslam.slam.pipeline import SlamPipeline
-    from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
+    from metricslam.slam.session_builder import build_session, preset_for
     from metricslam.trajectory.io import write_kitti_poses
 
-    overrides = load_overrides(args.config)
+    config = config_from_args(args)
     seq = open_sequence(args.seq_dir)
-    synth = (Path(args.seq_dir) / "depth_0").is_dir()  # `metricslam synth` output
-    preset = args.preset or (
-        "synth" if synth else _PRESET_BY_FORMAT.get(detect_format(args.seq_dir), "kitti"))
+    preset = config.vo.preset or preset_for(args.seq_dir)
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
-    depth_queue = OFFLINE_DEPTH_QUEUE_SIZE if args.depth_queue is None else args.depth_queue
-    if depth_queue < 1:
-        raise ConfigError(f"--depth-queue must be >= 1, got {depth_queue}")
-    backend = None
-    graph_fixed = DETERMINISTIC_GRAPH if args.deterministic else {}
-    history = ScaleHistory(overrides.graph_config(depth_queue_size=depth_queue, **graph_fixed))
-    if not args.vo_only:
-        try:
-            from metricslam.slam.backend_factory import make_backend
-            from metricslam.slam.depth_source import OnnxDepthSource
-        except ImportError as exc:  # pragma: no cover - only before the back end landed
-            raise ConfigError("metric mode not available yet: use --vo-only") from exc
-        source = None if args.no_scale else RecordingDepthSource(OnnxDepthSource(args.model), history)
-        backend = make_backend(seq.camera, use_scale=not args.no_scale, depth_source=source,
-                               config=history.graph_config)
-    vo_config = overrides.vo_config(preset, **(DETERMINISTIC_VO if args.deterministic else {}))
+    pipeline = build_session(seq.camera, config, default_preset=preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
-                                             vo_config.model_dump())
-    pipeline = SlamPipeline(seq.camera, vo_config, backend=backend, scale_history=history)
+                                             pipeline.vo.config.model_dump())
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",
@@ -130,9 +135,9 @@ def run(args: argparse.Namespace) -> int:
     stats = pipeline.stats()
     stats.update(pipeline.scale_history())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
-                  "fps": n / wall_s if wall_s > 0 else None,
-                  "mode": "vo-only" if args.vo_only else ("no-scale" if args.no_scale else "metric"),
-                  "deterministic": bool(args.deterministic)})
+                  "fps": n / wall_s if wall_s > 0 else None, "mode": config.mode,
+                  "deterministic": config.deterministic,
+                  "config": config.model_dump(mode="json")})
     print(f"{n} frames, {stats['keyframes']} keyframes, {stats['tracking_losses']} tracking "
           f"losses, {stats['fps']:.1f} frames/s (including image loading) -> {args.out}")
     if args.json:

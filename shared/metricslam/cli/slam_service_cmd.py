@@ -3,14 +3,20 @@
 Example::
 
     metricslam slam-service --zenoh-endpoint tcp/127.0.0.1:7447 --depth-url http://127.0.0.1:8100
+    metricslam slam-service --config my_camera.yaml      # the same file `metricslam run` takes
 
 Subscribes ``metricslam/*/frame``; publishes ``…/pose`` (every frame), ``…/keyframe``,
-``…/status``; answers ``…/trajectory``. Flags override ``SLAM_*`` environment variables.
+``…/status``; answers ``…/trajectory``. Service flags override ``SLAM_*`` environment variables;
+the sessions' :class:`~metricslam.slam.system_config.SystemConfig` comes from ``--config`` (or
+``METRICSLAM_CONFIG``), then ``METRICSLAM_*`` variables, then ``--preset`` / ``--no-scale`` /
+``--queue-size``.
 """
 
 from __future__ import annotations
 
 import argparse
+
+from metricslam.endpoints import DEFAULT_DEPTH_URL
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -19,10 +25,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Runs one SLAM session per camera id seen on metricslam/<id>/frame and "
         "publishes poses, keyframes and status over Zenoh. Flags override SLAM_* env variables.")
     p.add_argument("--zenoh-endpoint", metavar="EP", help="router endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--depth-url", metavar="URL", help="depth service base URL ('none': in-process model)")
+    p.add_argument("--depth-url", metavar="URL",
+                   help=f"depth service base URL (default {DEFAULT_DEPTH_URL}, where a bare "
+                        "`metricslam depth-service` listens; env SLAM_DEPTH_URL; 'none': "
+                        "in-process model)")
+    p.add_argument("--config", metavar="FILE.yaml",
+                   help="system configuration, the format `metricslam run --config` takes "
+                        "(default $METRICSLAM_CONFIG); METRICSLAM_* variables override it")
     p.add_argument("--no-scale", action="store_true", help="no learned scale factors (baseline)")
-    p.add_argument("--preset", help="VO preset (kitti, euroc, tum, synth)")
-    p.add_argument("--queue-size", type=int, help="frames buffered per camera (drop-oldest)")
+    p.add_argument("--preset", choices=("kitti", "euroc", "tum", "synth"),
+                   help="VO preset (default: the config's vo.preset, else kitti)")
+    p.add_argument("--queue-size", type=int,
+                   help="frames buffered per camera, drop-oldest (default: the config's queues.frames)")
     p.add_argument("--session", dest="session_kind", choices=("pipeline", "identity"),
                    help="pipeline (default) or identity (transport only, for benchmarks)")
     p.add_argument("--status-period", dest="status_period_s", type=float, metavar="S",
@@ -38,21 +52,35 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+def config_from_args(args: argparse.Namespace):
+    """The sessions' :class:`~metricslam.slam.system_config.SystemConfig`: class defaults →
+    ``--config`` (or ``$METRICSLAM_CONFIG``) → ``METRICSLAM_*`` → ``--preset`` / ``--queue-size``
+    / ``--no-scale`` — the loader ``metricslam run`` uses, without its offline depth queue."""
+    from metricslam.slam.config_file import load_system_config
+
+    flags: dict = {}
+    if args.preset is not None:
+        flags["vo"] = {"preset": args.preset}
+    if args.queue_size is not None:
+        flags["queues"] = {"frames": args.queue_size}
+    if args.no_scale:
+        flags["depth"] = {"use_scale": False}
+    return load_system_config(args.config, overrides=flags)
+
+
 def run(args: argparse.Namespace) -> int:
     import signal
 
     from metricslam_slam.service import SlamService
     from metricslam_slam.settings import SlamServiceSettings
 
-    overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "preset", "queue_size",
-                                                 "session_kind", "status_period_s", "keyframe_images", "rerun",
-                                                 "frame_key_expr")
+    overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
+                                                 "keyframe_images", "rerun", "frame_key_expr")
                  if getattr(args, k) is not None}
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
-    if args.no_scale:
-        overrides["use_scale"] = False
-    service = SlamService(SlamServiceSettings(**overrides))
+    config = config_from_args(args)  # before any network: a bad file fails fast
+    service = SlamService(SlamServiceSettings(**overrides), config=config)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: service.request_stop())
     service.start()

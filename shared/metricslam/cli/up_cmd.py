@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT, DEFAULT_ZENOH_ENDPOINT
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -19,12 +21,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Starts a Zenoh router, the depth service and the SLAM service as child "
         "processes, waits until each is ready, prints the endpoints, restarts a child that dies, "
         "and stops everything on SIGINT/SIGTERM.")
-    p.add_argument("--zenoh-endpoint", default="tcp/127.0.0.1:7447", metavar="EP",
-                   help="router listen endpoint (default tcp/127.0.0.1:7447)")
-    p.add_argument("--depth-port", type=int, default=8100, metavar="P", help="depth service port")
-    p.add_argument("--depth-host", default="127.0.0.1", help="depth service interface")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP",
+                   help=f"router listen endpoint (default {DEFAULT_ZENOH_ENDPOINT})")
+    p.add_argument("--depth-port", type=int, default=DEFAULT_DEPTH_PORT, metavar="P",
+                   help=f"depth service port (default {DEFAULT_DEPTH_PORT})")
+    p.add_argument("--depth-host", default=DEFAULT_DEPTH_HOST, help="depth service interface")
     p.add_argument("--no-scale", action="store_true", help="no depth service, no learned scale")
     p.add_argument("--preset", help="VO preset for the SLAM service (kitti, euroc, tum, synth)")
+    p.add_argument("--config", metavar="FILE.yaml",
+                   help="SLAM service system config (the file `metricslam run --config` takes)")
     p.add_argument("--session", dest="session_kind", default="pipeline",
                    choices=("pipeline", "identity"), help="SLAM session kind (identity: transport only)")
     p.add_argument("--log-dir", metavar="DIR", help="write each child's output to DIR/<name>.log")
@@ -46,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     stack = Stack(args.zenoh_endpoint, depth_port=args.depth_port, depth_host=args.depth_host,
                   use_scale=not args.no_scale, preset=args.preset, session_kind=args.session_kind,
-                  log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun)
+                  log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun,
+                  config_path=args.config)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 

@@ -42,12 +42,6 @@ class EvalResult(BaseModel):
     short_sequence: bool = Field(False, description="True when lengths 10..50 m replaced 100..800 m")
     notes: list[str] = Field(default_factory=list)
 
-    def contract_dict(self) -> dict:
-        """Only the DESIGN.md contract keys."""
-        keys = ("t_rel_pct", "r_rel_deg_per_100m", "ate_rmse_m", "ate_rmse_sim3_m", "scale_ratio",
-                "scale_error_pct", "n_frames", "path_length_m", "t_rel_lengths_m")
-        return {k: getattr(self, k) for k in keys}
-
 
 class EvalReport(BaseModel):
     """What ``metricslam eval --json`` writes.

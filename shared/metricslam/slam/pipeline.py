@@ -185,7 +185,7 @@ class SlamPipeline:
 def _compose_sim3_rigid(S_world_kf: np.ndarray, T_kf_cam: np.ndarray) -> np.ndarray:
     """Rigid ``T_world_cam``: rotation ``R_world_kf·R_kf_cam``, position ``S_world_kf·t_kf_cam``."""
     A = np.asarray(S_world_kf, dtype=float)
-    s = float(np.cbrt(np.linalg.det(A[:3, :3])))
+    s = sim3.scale(A)
     R, t = so3.project_to_so3(A[:3, :3] / s), A[:3, 3]
     out = np.eye(4)
     out[:3, :3] = R @ T_kf_cam[:3, :3]

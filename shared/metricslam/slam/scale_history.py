@@ -30,6 +30,7 @@ import weakref
 import numpy as np
 
 from metricslam.camera import PinholeCamera
+from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.types import MarginalizedKeyframe
@@ -135,7 +136,7 @@ class ScaleHistory:
                 if S is None:
                     r["scale_kf_optimized"] = r["scale_optimized"] = None
                 else:
-                    s = float(np.cbrt(np.linalg.det(np.asarray(S, dtype=float)[:3, :3])))
+                    s = sim3.scale(S)
                     r["scale_kf_optimized"] = s
                     r["scale_optimized"] = s * r["scale_live"]
                 out.append(r)

@@ -211,7 +211,9 @@ class KeyframeMessage(Message):
 class StatusMessage(Message):
     """Health of one camera's SLAM session (``metricslam/<id>/status``), published periodically.
 
-    ``depth_reachable``: None until the depth service was tried (or when scale is off).
+    ``depth_reachable``: None until the depth service was tried (or when scale is off); False
+    means keyframes get NO learned scale factors until it answers (``depth_error`` says why).
+    ``depth_outages``: times the depth service became unreachable since the service started.
     ``latency_ms_*``: frame receipt -> pose publish inside the service, over a recent window.
     """
 
@@ -232,6 +234,7 @@ class StatusMessage(Message):
     depth_url: str | None = None
     depth_reachable: bool | None = None
     depth_error: str | None = None
+    depth_outages: int = Field(default=0, ge=0)
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
 
 

@@ -26,7 +26,7 @@ def orthonormalize(S: np.ndarray) -> np.ndarray:
     S = np.asarray(S, dtype=float)
     if S.shape != (4, 4) or not np.all(np.isfinite(S)):
         raise GraphError(f"expected a finite 4x4 similarity, got shape {S.shape}")
-    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    s = sim3.scale(S)
     if not s > 0:
         raise GraphError(f"similarity has non-positive scale {s}; check the VO pose input")
     U, _, Vt = np.linalg.svd(S[:3, :3] / s)

@@ -85,10 +85,6 @@ class GlobalPoseGraph:
     def has(self, kf_id: int) -> bool:
         return int(kf_id) in self._latest
 
-    @property
-    def keyframe_ids(self) -> list[int]:
-        return list(self._keyframes)
-
     def add_keyframe(
         self,
         kf_id: int,

@@ -97,7 +97,7 @@ def bundle_adjust(problem: WindowProblem, huber_px: float, iterations: int,
     lin = linearize(current, huber_px)
     cost0 = lin.cost
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 -- `it` (iterations run) is returned
         Hpp = lin.Hpp + lam * np.diag(np.diag(lin.Hpp)) + 1e-9 * np.eye(6 * n)
         Hll = lin.Hll * (1.0 + lam) + 1e-9
         dp, dl = solve_reduced(Hpp, lin.Hpl, Hll, lin.bp, lin.bl, free)

@@ -33,11 +33,6 @@ class Prior:
     b: np.ndarray
     T_lin: np.ndarray
 
-    @classmethod
-    def zero(cls, T_world_kf: np.ndarray) -> "Prior":
-        n = len(T_world_kf)
-        return cls(np.zeros((6 * n, 6 * n)), np.zeros(6 * n), np.array(T_world_kf, copy=True))
-
     def deltas(self, T_world_kf: np.ndarray) -> np.ndarray:
         """Stacked ``δ`` (6n,) of poses (n, 4, 4) from the linearization point."""
         if len(T_world_kf) == 0:

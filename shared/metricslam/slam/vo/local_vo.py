@@ -24,7 +24,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
-from metricslam.geometry import se3, so3
+from metricslam.geometry import se3, sim3, so3
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
 from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.config import VOConfig
@@ -161,7 +161,7 @@ class LocalVO:
         """
         with self._lock:
             warp = self.window.apply_similarity(S_new_old, self._segment)
-            s = float(np.cbrt(np.linalg.det(np.asarray(S_new_old, dtype=float)[:3, :3])))
+            s = sim3.scale(S_new_old)
             self._T_world_last = warp(self._T_world_last)
             self._T_last_cur = self._T_last_cur.copy()
             self._T_last_cur[:3, 3] *= s

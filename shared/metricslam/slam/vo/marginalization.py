@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from metricslam.geometry import sim3
 from metricslam.slam.vo.linear_system import Linearization, Prior, WindowProblem, linearize
 
 
@@ -79,7 +80,7 @@ def rescale_prior(prior: Prior, S_new_old: np.ndarray) -> Prior:
     ``[ω, s·v]``, so ``H' = D H D`` and ``b' = D b`` with ``D = diag(1,1,1,1/s,1/s,1/s)`` per pose.
     """
     sR = S_new_old[:3, :3]
-    s = float(np.cbrt(np.linalg.det(sR)))
+    s = sim3.scale(S_new_old)
     R, t = sR / s, S_new_old[:3, 3]
     n = len(prior.T_lin)
     d = np.tile(np.array([1.0, 1.0, 1.0, 1.0 / s, 1.0 / s, 1.0 / s]), n)

@@ -135,10 +135,6 @@ class SlidingWindow:
                 out[kf.frame_index] = kf.T_world_kf.copy()
             return out
 
-    def find(self, kf_id: int) -> Keyframe | None:
-        with self.lock:
-            return next((k for k in self.keyframes if k.kf_id == kf_id), None)
-
     # -- optimization ---------------------------------------------------------------------------
     def _window_prior(self, kf_ids: list[int], T: np.ndarray) -> Prior | None:
         """The marginalization prior zero-padded to the window's keyframes."""
@@ -250,7 +246,7 @@ class SlidingWindow:
     def apply_similarity(self, S_new_old: np.ndarray, segment_id: int) -> Callable[[np.ndarray], np.ndarray]:
         """Re-express the window in a world related by ``S_new_old``; returns the pose warp."""
         S = np.asarray(S_new_old, dtype=float)
-        s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        s = sim3.scale(S)
         R, t = S[:3, :3] / s, S[:3, 3]
 
         def warp(T: np.ndarray) -> np.ndarray:
