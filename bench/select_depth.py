@@ -24,6 +24,8 @@ Example::
 from __future__ import annotations
 
 import argparse
+import json
+import multiprocessing
 import os
 import shlex
 import subprocess
@@ -79,6 +81,26 @@ def score(model_path: Path, data: Path, label: str) -> dict:
             "guard_ok": LIDAR_GUARD[0] <= lidar["median_ratio"] <= LIDAR_GUARD[1]}
 
 
+def slam_check(model_path: Path, data: Path, workdir: Path) -> dict:
+    """``metricslam run --deterministic`` (default settings otherwise) + ``metricslam eval`` on every
+    validation sequence: scale error (%) and ATE SE(3) (m). Reported beside the rule, never used by it."""
+    out = {}
+    exe = str(Path(sys.executable).parent / "metricslam")
+    for seq, gt in VALIDATION:
+        name = Path(seq).name
+        est = workdir / f"{model_path.stem}_{name}.txt"
+        ev = est.with_suffix(".json")
+        subprocess.run([exe, "run", str(data / seq), "--deterministic", "--no-progress", "--model", str(model_path),
+                        "--out", str(est)], check=True, capture_output=True, text=True)
+        subprocess.run([exe, "eval", "--gt", str(data / gt), "--est", str(est), "--json", str(ev)], check=True,
+                       capture_output=True, text=True)
+        res = json.loads(ev.read_text())
+        res = res.get("sequences", [res])[0] if isinstance(res, dict) and "sequences" in res else res
+        out[name] = {"scale_error_pct": res["scale_error_pct"], "scale_ratio": res["scale_ratio"],
+                     "ate_rmse_m": res["ate_rmse_m"]}
+    return out
+
+
 def markdown(report: dict) -> str:
     seq_names = list(report["default"]["bins"])
     bins = ("5-10", "10-20", "20-40", "40-60")
@@ -100,6 +122,15 @@ def markdown(report: dict) -> str:
                 + f" | {r['lidar']['median_ratio']:.3f} | {r['lidar']['abs_rel']:.3f} | "
                 f"{'ok' if r['guard_ok'] else 'FAIL'} |")
 
+    if report.get("slam"):
+        lines += ["", "SLAM check (reported, not used by the rule): `metricslam run --deterministic --model M`, "
+                  "scale error % per validation sequence.", "", "| candidate | " + " | ".join(
+                      report["slam"][next(iter(report["slam"]))]) + " |", "| --- |" + " --- |" * len(
+                      report["slam"][next(iter(report["slam"]))])]
+        for label, per in report["slam"].items():
+            lines.append(f"| {label} | " + " | ".join(f"{v['scale_error_pct']:.1f} % (×{v['scale_ratio']:.3f})"
+                                                      for v in per.values()) + " |")
+        lines += ["", head, "|" + " --- |" * (head.count("|") - 1)]
     lines.append(row(report["default"], "shipped"))
     for r in report["candidates"]:
         lines.append(row(r, "ema"))
@@ -131,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", default="../shared/data")
     p.add_argument("--export-dir", default="runs/candidates")
     p.add_argument("--no-raw", action="store_true", help="skip the raw-weight rows")
+    p.add_argument("--slam", action="store_true", help="also run SLAM with every EMA candidate (reported only)")
+    p.add_argument("--jobs", type=int, default=2, help="candidates scored in parallel (one thread each)")
     p.add_argument("--out", required=True, metavar="PREFIX")
     args = p.parse_args(argv)
     data, export_dir = Path(args.data), Path(args.export_dir)
@@ -138,19 +171,27 @@ def main(argv: list[str] | None = None) -> int:
     report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
               "machine": describe(), "default": score(DEFAULT_MODEL_PATH, data, "default (shipped)"),
               "candidates": [], "raw": [], "spread": {}}
+    tasks = [(run, step, w) for run in map(Path, args.run) for step in args.steps
+             if (run / f"step_{step:06d}.pt").is_file() for w in (("ema",) if args.no_raw else ("ema", "raw"))]
+    paths = [export(run, step, w, export_dir) for run, step, w in tasks]
+    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+        scored = pool.starmap(score, [(path, data, f"{run.name}@{step}") for path, (run, step, _) in zip(paths, tasks)])
     for run in map(Path, args.run):
-        rows_raw, rows_ema = [], []
-        for step in args.steps:
-            if not (run / f"step_{step:06d}.pt").is_file():
-                continue
-            rows_ema.append(score(export(run, step, "ema", export_dir), data, f"{run.name}@{step}"))
-            if not args.no_raw:
-                rows_raw.append(score(export(run, step, "raw", export_dir), data, f"{run.name}@{step}"))
+        rows_ema = [r for r, (rn, _, w) in zip(scored, tasks) if rn == run and w == "ema"]
+        rows_raw = [r for r, (rn, _, w) in zip(scored, tasks) if rn == run and w == "raw"]
         report["candidates"] += rows_ema
         report["raw"] += rows_raw
         if rows_ema:
             report["spread"][run.name] = (f"raw {spread_text(rows_raw)}; " if rows_raw else "") \
                 + f"EMA {spread_text(rows_ema)}"
+    if args.slam:
+        work = export_dir / "slam"
+        work.mkdir(parents=True, exist_ok=True)
+        models = [(report["default"]["label"], DEFAULT_MODEL_PATH)] + [(r["label"], Path(r["model"]))
+                                                                      for r in report["candidates"]]
+        with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+            runs = pool.starmap(slam_check, [(m, data, work) for _, m in models])
+        report["slam"] = {label: res for (label, _), res in zip(models, runs)}
     passing = [r for r in report["candidates"] if r["guard_ok"]]
     report["winner"] = min(passing, key=lambda r: r["score"]) if passing else None
     report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])
