@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: install install-dev lint test demo clean
+.PHONY: install install-dev lint results test demo clean
 
 $(BIN)/python:
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (Python 3.11) on PATH"; exit 1; }
@@ -35,6 +35,11 @@ LINT_PATHS := shared services training bench tests
 lint: install-dev
 	$(BIN)/ruff check $(LINT_PATHS)
 	$(BIN)/lint-imports --no-cache
+	$(BIN)/python bench/make_results.py --check
+
+# README's results block and docs/results.md, generated from bench/results/*.json (habit 17)
+results: install
+	$(BIN)/python bench/make_results.py
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

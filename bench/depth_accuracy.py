@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 from pathlib import Path
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
 
     data = Path(args.data)
     model = DepthModel.load(args.model, threads=1)
-    results = {"model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
+    results = {"command": " ".join([os.path.relpath(sys.executable), *sys.argv]), "model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
                "training_data": model.contract.training_data,
                "lidar": evaluate_lidar(model, data / args.lidar, args)}
     first, stop = args.lidar_frames

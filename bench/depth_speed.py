@@ -75,8 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         load = os.getloadavg()
         machine = (f"{platform.machine()}, {os.cpu_count()} CPUs, python {platform.python_version()}, "
-                   f"load average at the end {load[0]:.2f} (shared machine: others' jobs were running)")
-        out.with_suffix(".json").write_text(json.dumps({"model_id": c.model_id, "weights_precision": c.weights_precision,
+                   f"load average at the end {load[0]:.2f} (this run itself adds about 1)")
+        command = " ".join([os.path.relpath(sys.executable), *sys.argv])
+        out.with_suffix(".json").write_text(json.dumps({"command": command, "model_id": c.model_id,
+                                                        "weights_precision": c.weights_precision,
                                                         "input": [c.input_height, c.input_width],
                                                         "machine": machine, "results": results}, indent=2))
         out.with_suffix(".md").write_text(
