@@ -63,7 +63,7 @@ Example::
         --seq /work/shared/data/kitti_odometry/sequences/06 --gt /work/shared/data/kitti_odometry/poses/06.txt \\
         --seq /work/shared/data/kitti_raw_stereo/sequences/2011_09_26_drive_0013 \\
         --gt /work/shared/data/kitti_raw_stereo/poses/2011_09_26_drive_0013.txt \\
-        --slam --out bench/results/landmark_depth_default
+        --slam --out bench/results/landmark_depth
 """
 
 from __future__ import annotations
