@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -32,6 +31,8 @@ from metricslam_slam.service import SlamService
 from metricslam_slam.sessions import IdentitySession
 from metricslam_slam.settings import SlamServiceSettings
 from metricslam_slam.zenoh_config import open_client
+
+from child_process import interrupt_and_wait
 
 CLI = [sys.executable, "-m", "metricslam.cli.main"]
 ENDPOINT = "tcp/127.0.0.1:17480"
@@ -58,13 +59,7 @@ def _start(args: list[str], env: dict, log_path) -> subprocess.Popen:
 
 def _stop(proc: subprocess.Popen, log_path) -> str:
     """SIGINT (then SIGKILL), and the child's output."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    interrupt_and_wait(proc)
     return log_path.read_text()
 
 

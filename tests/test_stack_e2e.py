@@ -22,6 +22,8 @@ from metricslam_slam.client import PoseRecorder, query_trajectory
 from metricslam_slam.replay import replay_sequence
 from metricslam_slam.zenoh_config import open_client
 
+from child_process import interrupt_and_wait
+
 ENDPOINT = "tcp/127.0.0.1:17450"
 DEPTH_PORT = 18250
 N_FRAMES = 56
@@ -72,13 +74,7 @@ class _Lines:
 
 
 def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    interrupt_and_wait(proc)
 
 
 @pytest.mark.slow

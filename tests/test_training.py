@@ -374,3 +374,23 @@ def test_sgbm_range_is_part_of_the_cache_name(tmp_path):
     assert paths[0].name.endswith("_nd64.npz")
     with pytest.raises(ValidationError):
         _config(tmp_path, sgbm_num_disparities=100)
+
+
+def test_fine_tuning_starts_from_an_exported_onnx_model(tmp_path):
+    from metricslam_train.export import export_checkpoint, load_checkpoint, weights_from_onnx
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    first = train(_config(tmp_path, steps=1), progress=False)
+    export_checkpoint(first, tmp_path / "m.onnx")
+    state, contract = weights_from_onnx(tmp_path / "m.onnx")
+    trained = load_checkpoint(first)["model"]
+    assert set(state) == set(trained) and all(torch.equal(state[k], trained[k]) for k in state)
+    second = train(_config(tmp_path, steps=1, lr=1e-12, run_dir=str(tmp_path / "ft"),
+                           init_from=str(tmp_path / "m.onnx")), progress=False)
+    ft = load_checkpoint(second)
+    assert f"initialized from m.onnx ({contract.model_id})" in ft["meta"]["training_data"]
+    key = "estimators.0.out.weight"
+    assert torch.allclose(ft["model"][key], trained[key], atol=1e-6)  # a vanishing step away
+    with pytest.raises(TrainingError, match="does not exist"):
+        weights_from_onnx(tmp_path / "missing.onnx")

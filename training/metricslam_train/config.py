@@ -94,8 +94,9 @@ class TrainConfig(BaseModel):
     lr_halve_at: tuple[float, ...] = (0.6, 0.8)
     loss: LossConfig = LossConfig()
     augment: AugmentConfig = AugmentConfig()
-    #: optional checkpoint whose weights start this run (a second training stage); the optimizer
-    #: and step count start fresh, and its training data is recorded with this run's.
+    #: optional checkpoint whose weights start this run (a second training stage), or a float32
+    #: ONNX model written by `metricslam export` (e.g. the shipped depth_l3.onnx: fine-tune it);
+    #: the optimizer and step count start fresh, and its training data is recorded with this run's.
     init_from: str | None = None
     checkpoint_every: int = Field(250, ge=1)
     #: exponential moving average of the weights (Polyak averaging), updated every step with

@@ -63,6 +63,30 @@ def network_from_checkpoint(ckpt: dict, weights: str = "auto") -> PyramidDepthNe
     return net.eval()
 
 
+def weights_from_onnx(path: str | Path) -> tuple[dict[str, torch.Tensor], ModelContract]:
+    """The network weights and contract of a float32 ONNX file written by :func:`export_onnx`
+    (e.g. the shipped ``depth_l3.onnx``), to fine-tune from it (``init_from: MODEL.onnx``).
+
+    The exporter keeps every parameter as an initializer named ``net.<state_dict key>``; an int8
+    copy (``metricslam quantize``) does not, and is refused.
+    """
+    from onnx import numpy_helper
+
+    src = Path(path)
+    if not src.is_file():
+        raise TrainingError(f"{src} does not exist: pass a float32 model written by `metricslam export`")
+    model = onnx.load(str(src))
+    contract = ModelContract.from_metadata({p.key: p.value for p in model.metadata_props})
+    inits = {i.name: i for i in model.graph.initializer}
+    keys = PyramidDepthNet().state_dict().keys()
+    missing = [k for k in keys if f"net.{k}" not in inits]
+    if missing:
+        raise TrainingError(f"{src} lacks the float32 weights {missing[:3]}…: fine-tune from the float32 model "
+                            "(e.g. depth_l3.onnx), not its int8 copy")
+    state = {k: torch.from_numpy(numpy_helper.to_array(inits[f"net.{k}"]).copy()) for k in keys}
+    return state, contract
+
+
 def contract_for(net: PyramidDepthNet, meta: dict, model_id: str | None = None) -> ModelContract:
     """Build the contract from a checkpoint's ``meta`` dict."""
     h, w = int(meta["input_height"]), int(meta["input_width"])

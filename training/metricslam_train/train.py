@@ -166,7 +166,16 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     step = 0
     last = run_dir / "last.pt"
-    if cfg.init_from:
+    if cfg.init_from and cfg.init_from.endswith(".onnx"):
+        from metricslam_train.export import weights_from_onnx
+
+        state, contract = weights_from_onnx(cfg.init_from)
+        if not last.is_file():
+            net.load_state_dict(state)
+            log.info("initialized weights from %s (%s)", cfg.init_from, contract.model_id)
+        training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name} ({contract.model_id}), "
+                         f"trained on: {contract.training_data}")
+    elif cfg.init_from:
         init = torch.load(cfg.init_from, map_location=device, weights_only=False)
         if "model" not in init or "meta" not in init:
             raise TrainingError(f"init_from {cfg.init_from} is not a metricslam training checkpoint")
