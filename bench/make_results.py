@@ -117,6 +117,29 @@ def selection_table(data: dict) -> str:
     return "\n".join(lines)
 
 
+def slam_rule_table(data: dict) -> str:
+    names = list(data["default"]["slam"])
+    lines = ["| model | " + " | ".join(f"{n} scale error" for n in names) + " | "
+             + " | ".join(f"{n} landmark-weighted corner \\|log\\|" for n in names) + " | eligible |",
+             "| --- |" + " --- |" * (2 * len(names) + 1)]
+    for r in [data["default"], *data["candidates"]]:
+        lines.append(f"| {r['label']} | " + " | ".join(f"{r['slam'][n]['scale_error_pct']:.1f} % (×{r['slam'][n]['scale_ratio']:.3f})"
+                                                      for n in names)
+                     + " | " + " | ".join(f"{r['vo_weighted'][n]:.3f}" for n in names)
+                     + f" | {'—' if 'eligible' not in r else ('yes' if r['eligible'] else 'no')} |")
+    w = data.get("winner")
+    lines += ["", f"Winner by the rule: **{w['label'] if w else 'none eligible'}**."]
+    return "\n".join(lines)
+
+
+def upper_bound_lines(data: dict) -> str:
+    rows = [f"{r['name']} {r['metrics']['scale_error_pct']:.1f} % (ATE SE(3) {r['metrics']['ate_rmse_m']:.2f} m)"
+            for r in data["rows"] if r["variant"] == "stereo"]
+    return ("**The same SLAM with the stereo pair's SGBM depth in the network's place** (an upper bound: "
+            "the VO, graph and warp are not what limits the scale): scale error " + ", ".join(rows) + ". "
+            + _src("scale_upper_bound_0013.json", data))
+
+
 def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
@@ -124,10 +147,14 @@ def build() -> tuple[str, str]:
     dspeed = _load("depth_speed_int8.json")
     speeds = {n: d for n in ("speed_0013.json", "speed.json") if (d := _load(n))}
     final_corners, final_slam = _load("landmark_depth_v3_final_06.json"), _load("accuracy_v3_final_06.json")
+    ft = _load("depth_v3ft_selection.json")
+    bound = _load("scale_upper_bound_0013.json")
     parts = []
     if slam:
         parts += ["**SLAM, deterministic runs** (`metricslam run --deterministic`, default settings):", "",
                   slam_table(slam), "", _src("accuracy_v3.json", slam), ""]
+    if bound:
+        parts += [upper_bound_lines(bound), ""]
     if corners:
         parts += [f"**Depth network where SLAM samples it** (median z_net / z_tri at corners tracked "
                   f"over 3 frames and triangulated with the ground-truth motion; shipped model "
@@ -150,6 +177,9 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
+    if ft:
+        page += ["## Depth v3-ft: the shipped model fine-tuned on real city data, selected on SLAM scale", "",
+                 slam_rule_table(ft), "", _src("depth_v3ft_selection.json", ft), ""]
     return block, "\n".join(page).rstrip() + "\n"
 
 

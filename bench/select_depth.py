@@ -101,6 +101,45 @@ def slam_check(model_path: Path, data: Path, workdir: Path) -> dict:
     return out
 
 
+def score_slam_rule(model_path: Path, data: Path, label: str, workdir: Path) -> dict:
+    """The v3-ft rule (``configs/train_depth_v3ft.yaml``): SLAM scale error on every validation
+    drive (score = the largest) and the landmark-weighted corner ratio per drive."""
+    seqs = [(str(data / s), str(data / g)) for s, g in VALIDATION]
+    corners = summary(evaluate(seqs, model_path, label, oracle=False, slam=True))
+    slam = slam_check(model_path, data, workdir)
+    return {"label": label, "model": str(model_path), "slam": slam,
+            "score": max(v["scale_error_pct"] for v in slam.values()),
+            "vo_weighted": {k: v["vo_weighted_abs_log_ratio"] for k, v in corners.items()}}
+
+
+def apply_slam_rule(default: dict, candidates: list[dict], max_06_pct: float = 5.0) -> dict | None:
+    """Eligible: KITTI 06 scale error <= ``max_06_pct`` and the landmark-weighted corner ratio no
+    worse than the default's on every drive; the lowest score wins (None if none is eligible)."""
+    for c in candidates:
+        c["eligible"] = (c["slam"]["06"]["scale_error_pct"] <= max_06_pct
+                         and all(c["vo_weighted"][k] <= default["vo_weighted"][k] for k in default["vo_weighted"]))
+    eligible = [c for c in candidates if c["eligible"]]
+    return min(eligible, key=lambda c: c["score"]) if eligible else None
+
+
+def slam_rule_markdown(report: dict) -> str:
+    names = list(report["default"]["slam"])
+    head = ("| model | " + " | ".join(f"{n} scale error" for n in names) + " | score (max) | "
+            + " | ".join(f"{n} landmark-weighted corner \\|log\\|" for n in names) + " | eligible |")
+    lines = [f"# Depth v3-ft selection (rule in configs/train_depth_v3ft.yaml)\n\nCommand: `{report['command']}`  \n"
+             f"Machine: {report['machine']}\n", head, "|" + " --- |" * (head.count("|") - 1)]
+    for r in [report["default"], *report["candidates"]]:
+        lines.append(f"| {r['label']} | " + " | ".join(f"{r['slam'][n]['scale_error_pct']:.1f} % "
+                                                      f"(×{r['slam'][n]['scale_ratio']:.3f})" for n in names)
+                     + f" | {r['score']:.1f} % | " + " | ".join(f"{r['vo_weighted'][k]:.3f}" for k in r["vo_weighted"])
+                     + f" | {'—' if 'eligible' not in r else ('yes' if r['eligible'] else 'no')} |")
+    w = report["winner"]
+    lines += ["", f"**Winner:** {w['label'] if w else 'none eligible'}"
+              + (f" (score {w['score']:.1f} % vs the shipped model's {report['default']['score']:.1f} %: "
+                 f"{'beats it' if w['score'] < report['default']['score'] else 'does not beat it'})" if w else "")]
+    return "\n".join(lines) + "\n"
+
+
 def markdown(report: dict) -> str:
     seq_names = list(report["default"]["bins"])
     bins = ("5-10", "10-20", "20-40", "40-60")
@@ -163,11 +202,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--export-dir", default="runs/candidates")
     p.add_argument("--no-raw", action="store_true", help="skip the raw-weight rows")
     p.add_argument("--slam", action="store_true", help="also run SLAM with every EMA candidate (reported only)")
+    p.add_argument("--rule", choices=("corners", "slam"), default="corners",
+                   help="corners: the v3 rule (worst corner bin); slam: the v3-ft rule (SLAM scale error)")
     p.add_argument("--jobs", type=int, default=2, help="candidates scored in parallel (one thread each)")
     p.add_argument("--out", required=True, metavar="PREFIX")
     args = p.parse_args(argv)
     data, export_dir = Path(args.data), Path(args.export_dir)
     export_dir.mkdir(parents=True, exist_ok=True)
+    if args.rule == "slam":
+        return main_slam_rule(args, argv, data, export_dir)
     report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
               "machine": describe(), "default": score(DEFAULT_MODEL_PATH, data, "default (shipped)"),
               "candidates": [], "raw": [], "spread": {}}
@@ -196,6 +239,24 @@ def main(argv: list[str] | None = None) -> int:
     report["winner"] = min(passing, key=lambda r: r["score"]) if passing else None
     report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])
     text = markdown(report)
+    print(text)
+    write_results(args.out, report, text)
+    return 0
+
+
+def main_slam_rule(args, argv: list[str], data: Path, export_dir: Path) -> int:
+    work = export_dir / "slam"
+    work.mkdir(parents=True, exist_ok=True)
+    tasks = [(run, step) for run in map(Path, args.run) for step in args.steps if (run / f"step_{step:06d}.pt").is_file()]
+    models = [("default (shipped)", DEFAULT_MODEL_PATH)] + [
+        (f"{run.name}@{step}", export(run, step, "ema", export_dir)) for run, step in tasks]
+    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+        rows = pool.starmap(score_slam_rule, [(m, data, label, work) for label, m in models])
+    report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
+              "machine": describe(), "default": rows[0], "candidates": rows[1:]}
+    report["winner"] = apply_slam_rule(report["default"], report["candidates"])
+    report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])
+    text = slam_rule_markdown(report)
     print(text)
     write_results(args.out, report, text)
     return 0
