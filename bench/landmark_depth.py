@@ -80,9 +80,11 @@ import numpy as np
 from machine import describe, write_results
 from metricslam.datasets import open_sequence
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, sample_map
-from metricslam.geometry.sim3 import scale as sim3_scale
+from metricslam.slam.session_builder import preset_for
 from metricslam.stereo import block_matching_pair
+from gt_corners import intrinsics, track_corners, triangulate_gt
 from scale_upper_bound import disparity_at, pool_cells
+from slam_landmarks import scale_landmark_depths
 
 #: range bins of the triangulated depth (m), lo <= z < hi (the last one includes 60 m)
 RANGE_BINS_M = ((2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0))
@@ -91,8 +93,6 @@ SUMMARY_BINS = ("5-10", "10-20", "20-40", "40-60")
 #: a bin needs this many corners to count in :func:`summary`
 SUMMARY_MIN_CORNERS = 20
 
-_LK = {"winSize": (21, 21), "maxLevel": 3,
-       "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 #: SGBM oracle maps (1/m on the network grid) by (sequence folder, frame, grid, disparities)
 _ORACLE_CACHE: dict[tuple, np.ndarray] = {}
 
@@ -102,77 +102,6 @@ def bin_label(lo: float, hi: float) -> str:
 
 
 BIN_LABELS = tuple(bin_label(lo, hi) for lo, hi in RANGE_BINS_M)
-
-
-def track_corners(images: list[np.ndarray], max_corners: int = 1000, quality: float = 0.01,
-                  min_distance_px: float = 7.0, fb_max_px: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Corners of ``images[0]`` tracked frame to frame through ``images[1:]`` (pyramidal KLT, each
-    step forward-backward checked to ``fb_max_px``); a corner lost at some step keeps its last
-    good position.
-
-    Returns:
-        ``(uv_0, uv_last, steps)``: (N, 2) float64 pixels (u, v) in ``images[0]`` and in
-        ``images[steps]``, and (N,) int ``steps`` ≥ 1 (corners lost at the first step are dropped).
-    """
-    p0 = cv2.goodFeaturesToTrack(images[0], max_corners, quality, min_distance_px)
-    if p0 is None or len(images) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
-    p0 = p0.reshape(-1, 1, 2).astype(np.float32)
-    cur = p0.copy()
-    steps = np.zeros(len(p0), int)
-    alive = np.ones(len(p0), bool)
-    for k in range(1, len(images)):
-        idx = np.nonzero(alive)[0]
-        if idx.size == 0:
-            break
-        nxt, st, _ = cv2.calcOpticalFlowPyrLK(images[k - 1], images[k], cur[idx], None, **_LK)
-        back, st_b, _ = cv2.calcOpticalFlowPyrLK(images[k], images[k - 1], nxt, None, **_LK)
-        h, w = images[k].shape[:2]
-        u, v = nxt[:, 0, 0], nxt[:, 0, 1]
-        ok = ((st[:, 0] == 1) & (st_b[:, 0] == 1) & (np.linalg.norm((back - cur[idx])[:, 0], axis=1) < fb_max_px)
-              & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
-        alive[idx[~ok]] = False
-        cur[idx[ok]] = nxt[ok]
-        steps[idx[ok]] = k
-    got = steps >= 1
-    return p0[got, 0].astype(np.float64), cur[got, 0].astype(np.float64), steps[got]
-
-
-def triangulate_gt(uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, T_b_a: np.ndarray,
-                   max_reproj_px: float = 1.0, depth_range_m: tuple[float, float] = (2.0, 60.0),
-                   min_parallax_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulate tracks with a known (ground-truth) relative motion.
-
-    Args:
-        uv_a, uv_b: (N, 2) pixels of the same points in frames a and b.
-        K: (3, 3) intrinsics (both frames).
-        T_b_a: (4, 4) pose of camera a in camera b (``inv(T_world_b) @ T_world_a``), metres.
-        max_reproj_px: largest reprojection error accepted in either frame.
-        depth_range_m: accepted depth in frame a (m).
-        min_parallax_deg: smallest angle between the two viewing rays.
-
-    Returns:
-        ``(keep, z_a)``: (N,) bool mask of accepted points and (N,) depth in frame a (m; every
-        point, accepted or not).
-    """
-    n = len(uv_a)
-    if n == 0:
-        return np.zeros(0, bool), np.zeros(0)
-    P_a = K @ np.eye(3, 4)
-    P_b = K @ T_b_a[:3]
-    X_h = cv2.triangulatePoints(P_a, P_b, uv_a.T.astype(np.float64), uv_b.T.astype(np.float64))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        X = (X_h[:3] / X_h[3]).T  # (N, 3) in frame a
-        X_b = X @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-        err_a = np.linalg.norm(X @ K.T[:, :2] / (X @ K.T[:, 2:]) - uv_a, axis=1)
-        err_b = np.linalg.norm(X_b @ K.T[:, :2] / (X_b @ K.T[:, 2:]) - uv_b, axis=1)
-        ray_a = X / np.linalg.norm(X, axis=1, keepdims=True)
-        ray_b = X_b / np.linalg.norm(X_b, axis=1, keepdims=True) @ T_b_a[:3, :3]  # b's ray in frame a
-        parallax = np.degrees(np.arccos(np.clip(np.sum(ray_a * ray_b, axis=1), -1.0, 1.0)))
-    z = X[:, 2]
-    keep = (np.isfinite(z) & (X_b[:, 2] > 0) & (z >= depth_range_m[0]) & (z <= depth_range_m[1])
-            & (err_a < max_reproj_px) & (err_b < max_reproj_px) & (parallax >= min_parallax_deg))
-    return keep, z
 
 
 def oracle_inv_depth(seq, index: int, grid_hw: tuple[int, int], num_disparities: int = 192,
@@ -242,7 +171,7 @@ def landmark_samples(seq, model: DepthModel, stride: int = 3, gap: int = 3, min_
     if oracle and seq.baseline_m is None:
         raise ValueError(f"{seq.name}: the oracle needs the right images (image_1/)")
     cam = seq.camera
-    K = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
+    K = intrinsics(cam)
     cols = {k: [] for k in ("frame", "u", "v", "z_tri", "z_net", "z_oracle", "z_depth0")}
     pairs = 0
     for i in range(0, len(seq) - gap, stride):
@@ -275,78 +204,25 @@ def landmark_samples(seq, model: DepthModel, stride: int = 3, gap: int = 3, min_
     return out
 
 
-class _RecordingSource:
-    """The network as the back end's depth source, remembering each keyframe image's map."""
-
-    def __init__(self, model: DepthModel) -> None:
-        self.model = model
-        self.maps: dict[int, np.ndarray] = {}
-
-    def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
-        inv = self.model.predict_inv_depth(image, fx_px=camera.fx_px).inv_depth_per_m
-        self.maps[id(image)] = inv
-        return inv
-
-
-def slam_preset(seq_dir: str | Path) -> str:
-    """The VO preset ``metricslam run`` picks for the folder (:func:`~metricslam.slam.session_builder.preset_for`)."""
-    from metricslam.slam.session_builder import preset_for
-
-    return preset_for(seq_dir)
-
-
-def slam_landmark_depths(seq, model: DepthModel, preset: str) -> dict:
-    """Run ``metricslam run --deterministic``'s system in-process (the one session builder); the
-    metric depth (m) the SLAM gives its scale landmarks, ``s_kf / ξ_j``, pooled over keyframes
-    (module docstring)."""
-    from metricslam.slam.session_builder import build_session
-    from metricslam.slam.system_config import SystemConfig
-
-    config = SystemConfig(vo={"preset": preset}, deterministic=True)
-    graph_cfg = config.graph_config()
-    source = _RecordingSource(model)
-    pipe = build_session(seq.camera, config, depth_source=source)
-    backend = pipe.backend
-    keyframes = []
-    forward = backend.on_keyframe_marginalized
-
-    def record(kf):
-        keyframes.append(kf)
-        return forward(kf)
-
-    backend.on_keyframe_marginalized = record
-    try:
-        for i in range(len(seq)):
-            pipe.process(seq[i])
-    finally:
-        pipe.close()
-    S_by_frame = backend.optimized_keyframe_poses()
-    depths = []
-    for kf in keyframes:
-        S, inv_map = S_by_frame.get(kf.frame_index), source.maps.get(id(kf.image))
-        xi = np.asarray(kf.landmarks_inv_depth, float).reshape(-1)
-        if S is None or inv_map is None or xi.size == 0:
-            continue
-        s_kf = float(sim3_scale(np.asarray(S, float)))
-        z_net_inv = sample_map(inv_map, kf.landmarks_uv_px, (kf.image.shape[1], kf.image.shape[0]))
-        ok = (np.isfinite(xi) & (xi > 0) & np.isfinite(z_net_inv) & (z_net_inv >= graph_cfg.min_inv_depth_per_m)
-              & (z_net_inv <= graph_cfg.max_inv_depth_per_m))
-        depths.append(s_kf / xi[ok])
-    z = np.concatenate(depths) if depths else np.zeros(0)
+def slam_landmark_fractions(seq, model: DepthModel, preset: str) -> dict:
+    """Where the SLAM's own scale landmarks fall: :func:`slam_landmarks.scale_landmark_depths`
+    binned like the corners (fractions of all; ``<2`` and ``>60`` hold the rest)."""
+    run = scale_landmark_depths(seq, model, preset)
+    z = run.pop("depths_m")
     idx = bin_index(z)
     n = max(z.size, 1)
     fraction = {label: float(np.sum(idx == k)) / n for k, label in enumerate(BIN_LABELS)}
     fraction["<2"] = float(np.sum(z < RANGE_BINS_M[0][0])) / n
     fraction[">60"] = float(np.sum(z > RANGE_BINS_M[-1][1])) / n
-    return {"preset": preset, "keyframes": len(keyframes), "keyframes_used": len(depths), "landmarks": int(z.size),
-            "median_depth_m": float(np.median(z)) if z.size else None, "fraction": fraction}
+    return {**run, "landmarks": int(z.size), "median_depth_m": float(np.median(z)) if z.size else None,
+            "fraction": fraction}
 
 
 def evaluate_sequence(seq_dir: str | Path, gt: str | Path, model: DepthModel, stride: int = 3, gap: int = 3,
                       min_parallax_deg: float = 1.0, num_disparities: int = 192, oracle: bool = True,
                       slam: bool = False, slam_preset_name: str | None = None) -> dict:
     """All of the module docstring for one sequence: JSON-ready dict with ``network`` and
-    ``oracle`` (:func:`per_bin`), optional ``slam`` (:func:`slam_landmark_depths`), counts, timing."""
+    ``oracle`` (:func:`per_bin`), optional ``slam`` (:func:`slam_landmark_fractions`), counts, timing."""
     t0 = time.perf_counter()
     seq = open_sequence(seq_dir, poses_file=gt)
     s = landmark_samples(seq, model, stride, gap, min_parallax_deg, num_disparities, oracle)
@@ -363,7 +239,7 @@ def evaluate_sequence(seq_dir: str | Path, gt: str | Path, model: DepthModel, st
     res["eval_s"] = time.perf_counter() - t0
     if slam:
         t1 = time.perf_counter()
-        res["slam"] = slam_landmark_depths(seq, model, slam_preset_name or slam_preset(seq_dir))
+        res["slam"] = slam_landmark_fractions(seq, model, slam_preset_name or preset_for(seq_dir))
         res["slam"]["wall_s"] = time.perf_counter() - t1
     return res
 

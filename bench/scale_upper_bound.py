@@ -46,6 +46,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from gt_corners import intrinsics, triangulate_gt
 from machine import describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.session_builder import build_session
@@ -194,7 +195,7 @@ def stereo_check(seq: KittiOdometry, gap: int = 2, stride: int = 3) -> dict:
     LK match has a negative disparity (impossible for a correctly rectified pair).
     """
     cam = seq.camera
-    K = np.array([[cam.fx_px, 0, cam.cx_px], [0, cam.fy_px, cam.cy_px], [0, 0, 1]])
+    K = intrinsics(cam)
     fb = cam.fx_px * seq.baseline_m
     T_world_cam = seq.T_world_cam_gt
     if T_world_cam is None:
@@ -210,19 +211,10 @@ def stereo_check(seq: KittiOdometry, gap: int = 2, stride: int = 3) -> dict:
         ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(pb - p0, axis=2)[:, 0] < 0.5)
         x0, x1 = p0[ok, 0].astype(float), p1[ok, 0].astype(float)
         T_b_a = np.linalg.inv(T_world_cam[k + gap]) @ T_world_cam[k]
-        P1 = K @ T_b_a[:3]
-        X = cv2.triangulatePoints(K @ np.eye(3, 4), P1, x0.T, x1.T)
-        X = X[:3] / X[3]
-        xb = P1 @ np.vstack([X, np.ones(X.shape[1])])
-        reproj_px = np.linalg.norm((xb[:2] / xb[2]).T - x1, axis=1)
-        c_b = -T_b_a[:3, :3].T @ T_b_a[:3, 3]
-        r0 = X / np.linalg.norm(X, axis=0)
-        r1 = (X - c_b[:, None]) / np.linalg.norm(X - c_b[:, None], axis=0)
-        parallax_deg = np.degrees(np.arccos(np.clip((r0 * r1).sum(0), -1, 1)))
-        good = (X[2] > 3) & (X[2] < 80) & (reproj_px < 1.0) & (parallax_deg > 2.0)
+        good, z = triangulate_gt(x0, x1, K, T_b_a, depth_range_m=(3.0, 80.0), min_parallax_deg=2.0)
         d = disparity_at(block_matching_pair(a.image, a.image_right)[0], x0[good])
-        z_gt += list(X[2][good])
-        d_gt += list(fb / X[2][good])
+        z_gt += list(z[good])
+        d_gt += list(fb / z[good])
         d_sgbm += list(d)
         q1, st, _ = cv2.calcOpticalFlowPyrLK(a.image, a.image_right, p0, None, winSize=(21, 21), maxLevel=4)
         qb, st2, _ = cv2.calcOpticalFlowPyrLK(a.image_right, a.image, q1, None, winSize=(21, 21), maxLevel=4)

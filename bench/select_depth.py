@@ -94,8 +94,7 @@ def slam_check(model_path: Path, data: Path, workdir: Path) -> dict:
                         "--out", str(est)], check=True, capture_output=True, text=True)
         subprocess.run([exe, "eval", "--gt", str(data / gt), "--est", str(est), "--json", str(ev)], check=True,
                        capture_output=True, text=True)
-        res = json.loads(ev.read_text())
-        res = res.get("sequences", [res])[0] if isinstance(res, dict) and "sequences" in res else res
+        res = json.loads(ev.read_text())  # one --gt/--est pair: the flat result
         out[name] = {"scale_error_pct": res["scale_error_pct"], "scale_ratio": res["scale_ratio"],
                      "ate_rmse_m": res["ate_rmse_m"]}
     return out
@@ -123,21 +122,12 @@ def apply_slam_rule(default: dict, candidates: list[dict], max_06_pct: float = 5
 
 
 def slam_rule_markdown(report: dict) -> str:
-    names = list(report["default"]["slam"])
-    head = ("| model | " + " | ".join(f"{n} scale error" for n in names) + " | score (max) | "
-            + " | ".join(f"{n} landmark-weighted corner \\|log\\|" for n in names) + " | eligible |")
-    lines = [f"# Depth v3-ft selection (rule in configs/train_depth_v3ft.yaml)\n\nCommand: `{report['command']}`  \n"
-             f"Machine: {report['machine']}\n", head, "|" + " --- |" * (head.count("|") - 1)]
-    for r in [report["default"], *report["candidates"]]:
-        lines.append(f"| {r['label']} | " + " | ".join(f"{r['slam'][n]['scale_error_pct']:.1f} % "
-                                                      f"(×{r['slam'][n]['scale_ratio']:.3f})" for n in names)
-                     + f" | {r['score']:.1f} % | " + " | ".join(f"{r['vo_weighted'][k]:.3f}" for k in r["vo_weighted"])
-                     + f" | {'—' if 'eligible' not in r else ('yes' if r['eligible'] else 'no')} |")
-    w = report["winner"]
-    lines += ["", f"**Winner:** {w['label'] if w else 'none eligible'}"
-              + (f" (score {w['score']:.1f} % vs the shipped model's {report['default']['score']:.1f} %: "
-                 f"{'beats it' if w['score'] < report['default']['score'] else 'does not beat it'})" if w else "")]
-    return "\n".join(lines) + "\n"
+    from make_results import slam_rule_table  # the results page renders the same table
+
+    return (f"# Depth v3-ft selection (rule in configs/train_depth_v3ft.yaml)\n\nCommand: `{report['command']}`  \n"
+            f"Machine: {report['machine']}\n\n{slam_rule_table(report)}\n"
+            + (f"\nScore (the larger scale error) {report['winner']['score']:.1f} % vs the shipped model's "
+               f"{report['default']['score']:.1f} %.\n" if report["winner"] else ""))
 
 
 def markdown(report: dict) -> str:

@@ -20,6 +20,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 if str(BENCH) not in sys.path:
     sys.path.insert(0, str(BENCH))
 
+import gt_corners  # noqa: E402
 import landmark_depth as ld  # noqa: E402
 
 FRAMES = 13  # stride 3, gap 3: 4 frame pairs
@@ -50,18 +51,18 @@ def test_triangulation_recovers_exact_depth_and_rejects_no_parallax() -> None:
 
     T_b_a = np.eye(4)
     T_b_a[:3, 3] = [0.2, 0.0, -3.5]  # b is 3.5 m ahead (and a little to the side)
-    keep, z = ld.triangulate_gt(project(np.eye(4), X), project(T_b_a, X), K, T_b_a, min_parallax_deg=0.0)
+    keep, z = gt_corners.triangulate_gt(project(np.eye(4), X), project(T_b_a, X), K, T_b_a, min_parallax_deg=0.0)
     assert keep.all()
     np.testing.assert_allclose(z, X[:, 2], rtol=1e-6)
     # the parallax floor drops points near the focus of expansion, not the well-conditioned ones
-    keep_1, _ = ld.triangulate_gt(project(np.eye(4), X), project(T_b_a, X), K, T_b_a, min_parallax_deg=1.0)
+    keep_1, _ = gt_corners.triangulate_gt(project(np.eye(4), X), project(T_b_a, X), K, T_b_a, min_parallax_deg=1.0)
     assert 0 < keep_1.sum() < keep.sum()
     # points behind the second camera are rejected
     X_near = X[:5] * [1, 1, 0] + [0, 0, 3.0]
-    assert not ld.triangulate_gt(project(np.eye(4), X_near), project(T_b_a, X_near), K, T_b_a,
+    assert not gt_corners.triangulate_gt(project(np.eye(4), X_near), project(T_b_a, X_near), K, T_b_a,
                                  min_parallax_deg=0.0)[0].any()
     # a standing car: any depth reprojects exactly, none may be accepted
-    keep_0, _ = ld.triangulate_gt(project(np.eye(4), X), project(np.eye(4), X), K, np.eye(4))
+    keep_0, _ = gt_corners.triangulate_gt(project(np.eye(4), X), project(np.eye(4), X), K, np.eye(4))
     assert not keep_0.any()
 
 
