@@ -18,7 +18,11 @@ import math
 import numpy as np
 import pytest
 from metricslam.camera import PinholeCamera
-from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
+from metricslam.errors import DepthSourceError
+from metricslam.slam.events import ScaleMeasured, Solved
+from metricslam.slam.graph.backend import GlobalBackend
+from metricslam.slam.graph.config import GraphConfig, LoopConfig
+from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.types import MarginalizedKeyframe
 from pipeline_run import run_inline
 
@@ -123,20 +127,59 @@ def _keyframe(frame_index: int, xi: np.ndarray) -> MarginalizedKeyframe:
                                 image=np.zeros((32, 64), np.uint8), camera=cam)
 
 
+class _FailingDepth:
+    def inv_depth_map(self, image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+        raise DepthSourceError("depth service unreachable (test)")
+
+
+def _inline_backend(source) -> GlobalBackend:
+    return GlobalBackend(GraphConfig(inline=True, loop=LoopConfig(enabled=False)),
+                         depth_source=source)
+
+
 @pytest.mark.parametrize("ratio", [0.3, 1.0, 4.0])
 def test_measured_median_is_xi_over_z(ratio):
-    history = ScaleHistory()
+    """The history records exactly what the back end measured, from its ScaleMeasured event."""
     z = 0.1  # 10 m
-    source = RecordingDepthSource(_ConstantDepth(z), history)
+    backend = _inline_backend(_ConstantDepth(z))
+    history = ScaleHistory()
+    history.attach(backend.events)
+    seen = []
+    backend.events.subscribe(seen.append, ScaleMeasured)
     xi = ratio * z * np.exp(np.linspace(-0.2, 0.2, 31))  # median exactly ratio * z
     kf = _keyframe(5, xi)
-    other = _keyframe(6, xi * 2.0)  # its depth request "dropped": never answered
+    other = _keyframe(6, xi * 2.0)  # its depth request "dropped": never reaches the back end
     history.on_keyframe(kf)
     history.on_keyframe(other)
-    source.inv_depth_map(kf.image, kf.camera)
-    source.inv_depth_map(np.zeros((32, 64), np.uint8), kf.camera)  # an unknown image: ignored
+    backend.on_keyframe_marginalized(kf)
     recs = {r["frame_index"]: r for r in history.keyframes()}
     assert recs[5]["scale_factors"] == 31
     assert math.isclose(recs[5]["scale_measured_median"], ratio, rel_tol=1e-5)
     assert recs[6]["scale_factors"] == 0 and recs[6]["scale_measured_median"] is None
     assert recs[5]["scale_optimized"] is None  # no back end poses given
+    (ev,) = seen
+    assert ev.frame_index == 5 and ev.error == "" and ev.image_size == (64, 32)
+    np.testing.assert_allclose(ev.net_inv_depth_per_m, z, rtol=1e-6)
+    np.testing.assert_allclose(np.median(ev.scales), ratio, rtol=1e-5)
+
+
+def test_failed_depth_request_is_an_event_and_a_broken_subscriber_changes_nothing():
+    backend = _inline_backend(_FailingDepth())
+    history = ScaleHistory()
+    history.attach(backend.events)
+    seen = []
+
+    def broken(ev):
+        raise RuntimeError("subscriber bug")
+
+    backend.events.subscribe(broken)
+    backend.events.subscribe(seen.append)
+    kf = _keyframe(3, np.full(20, 0.1))
+    history.on_keyframe(kf)
+    backend.on_keyframe_marginalized(kf)
+    measured = [ev for ev in seen if isinstance(ev, ScaleMeasured)]
+    assert len(measured) == 1 and "unreachable" in measured[0].error
+    assert measured[0].inv_depth_map_per_m is None and measured[0].scales.size == 0
+    assert any(isinstance(ev, Solved) for ev in seen)  # the solve still ran and said so
+    assert backend.stats()["depth_failures"] == 1
+    assert history.keyframes()[0]["scale_factors"] == 0

@@ -24,6 +24,7 @@ import numpy as np
 
 from metricslam.datasets.base import Frame
 from metricslam.errors import ConfigError
+from metricslam.slam.events import ScaleMeasured
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -78,8 +79,22 @@ class RerunView:
             if points is not None and len(points):
                 rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
 
+    def observing(self, factory):
+        """Wrap a session factory: each new session's back end events feed :meth:`log_depth`."""
+        def make(camera_id, camera):
+            session = factory(camera_id, camera)
+            backend = getattr(session, "backend", None)
+            if backend is not None and hasattr(backend, "events"):
+                backend.events.subscribe(self._on_scale_measured, ScaleMeasured)
+            return session
+        return make
+
+    def _on_scale_measured(self, ev: ScaleMeasured) -> None:
+        if ev.inv_depth_map_per_m is not None:
+            self.log_depth(ev.inv_depth_map_per_m)
+
     def log_depth(self, inv_depth_per_m: np.ndarray) -> None:
-        """Log one keyframe's metric depth map (called by :class:`TappedDepthSource`)."""
+        """Log one keyframe's metric depth map (the back end's ScaleMeasured events)."""
         try:
             with self._lock:
                 inv = np.asarray(inv_depth_per_m, dtype=np.float32)
@@ -91,23 +106,6 @@ class RerunView:
     def close(self) -> None:
         self._rec.flush()
         self._rec.disconnect()
-
-
-class TappedDepthSource:
-    """Wraps a DepthSource and hands each answer to ``on_map``; forwards everything else
-    (``reachable``, ``probe``, ``close`` ...) to the wrapped source."""
-
-    def __init__(self, inner: object, on_map) -> None:
-        self._inner = inner
-        self._on_map = on_map
-
-    def inv_depth_map(self, image, camera) -> np.ndarray:
-        out = self._inner.inv_depth_map(image, camera)
-        self._on_map(out)
-        return out
-
-    def __getattr__(self, name: str):
-        return getattr(self._inner, name)
 
 
 def _landmarks_world(session: object) -> np.ndarray | None:

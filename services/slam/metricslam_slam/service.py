@@ -55,16 +55,12 @@ class SlamService:
                 retries=settings.depth_retries, backoff_s=settings.depth_backoff_s)
         self.viewer = None
         if settings.rerun:
-            from metricslam_slam.rerun_view import RerunView, TappedDepthSource
+            from metricslam_slam.rerun_view import RerunView
             self.viewer = RerunView(settings.rerun)
-            if use_scale:
-                if depth_source is None:  # make the in-process model explicit so it can be tapped
-                    from metricslam.slam.depth_source import OnnxDepthSource
-                    depth_source = OnnxDepthSource(self.config.depth.model_path)
-                depth_source = TappedDepthSource(depth_source, self.viewer.log_depth)
         self.depth_source = depth_source
-        self._factory = session_factory or make_session_factory(
+        factory = session_factory or make_session_factory(
             settings.session_kind, self.config, depth_source)
+        self._factory = factory if self.viewer is None else self.viewer.observing(factory)
         self._workers: dict[str, CameraWorker] = {}
         self._workers_lock = threading.Lock()
         self._stopped = threading.Event()

@@ -38,9 +38,9 @@ class SlamPipeline:
         vo_config: local VO parameters.
         backend: the global back end (``metricslam.slam.backend_factory.make_backend``), or
             None for VO only (poses in the VO's arbitrary monocular scale).
-        scale_history: recorder of the scale estimate (a fresh one when None); pass the one
-            whose :class:`~metricslam.slam.scale_history.RecordingDepthSource` wraps the back
-            end's depth source to also record each keyframe's learned scale measurements.
+        scale_history: recorder of the scale estimate (a fresh one when None); attach it to
+            the back end's events (:meth:`~metricslam.slam.scale_history.ScaleHistory.attach`)
+            to also record each keyframe's learned scale measurements (``build_session`` does).
     """
 
     def __init__(self, camera: PinholeCamera, vo_config: VOConfig | None = None,

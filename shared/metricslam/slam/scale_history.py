@@ -14,52 +14,39 @@ the values show the VO's arbitrary scale — nothing here uses ground truth):
   the keyframe's ``P`` it is in world units per ``VO₀`` unit, comparable with the live value.
 * **measured (per keyframe)** — the median of the keyframe's learned scale measurements
   ``ξ_j / z_j`` (eq. 12: VO inverse depth over the network's metric inverse depth, metres per
-  keyframe VO unit), as the back end computes them (same sampling and filters). Recorded only
-  when the back end's depth source is wrapped in :class:`RecordingDepthSource`.
+  keyframe VO unit), exactly the values the back end gives the graph: recorded from its
+  :class:`~metricslam.slam.events.ScaleMeasured` events once :meth:`ScaleHistory.attach` has
+  subscribed to them.
 
 Units conventions: ``docs/conventions.md``.
 """
 
 from __future__ import annotations
 
-import collections
-import logging
 import threading
-import weakref
 
 import numpy as np
 
-from metricslam.camera import PinholeCamera
 from metricslam.geometry import sim3
-from metricslam.slam.depth_source import DepthSource
-from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.events import EventBus, ScaleMeasured
 from metricslam.slam.types import MarginalizedKeyframe
-
-log = logging.getLogger(__name__)
-
-#: pending keyframes beyond the back end's depth queue (requests in flight); older pending
-#: entries belong to dropped requests and are forgotten
-_PENDING_MARGIN = 8
 
 
 class ScaleHistory:
-    """Thread-safe recorder of the scale estimate (see the module docstring).
+    """Thread-safe recorder of the scale estimate (see the module docstring)."""
 
-    Args:
-        graph_config: the back end's parameters (filters of the scale measurements); the
-            default :class:`GraphConfig` when None.
-    """
-
-    def __init__(self, graph_config: GraphConfig | None = None) -> None:
-        self.graph_config = graph_config or GraphConfig()
-        self.records_measurements = False  # set by RecordingDepthSource
+    def __init__(self) -> None:
+        self.records_measurements = False  # set by attach()
         self._lock = threading.Lock()
         self._scale_live = 1.0
         self._keyframes: list[dict] = []
         self._by_frame: dict[int, dict] = {}
         self._corrections: list[dict] = []
-        # id(image) -> (weakref to image, keyframe record, uv (M, 2) px, ξ (M,) 1/VO-units)
-        self._pending: collections.OrderedDict = collections.OrderedDict()
+
+    def attach(self, events: EventBus) -> None:
+        """Record each keyframe's learned scale measurements from the back end's events."""
+        self.records_measurements = True
+        events.subscribe(self.on_scale_measured, ScaleMeasured)
 
     @property
     def scale_live(self) -> float:
@@ -74,8 +61,8 @@ class ScaleHistory:
                                       "s": float(s), "scale_live": self._scale_live})
 
     def on_keyframe(self, kf: MarginalizedKeyframe) -> None:
-        """A keyframe was marginalized (before the back end sees it): remember its live scale,
-        its VO step from the previous keyframe, and its landmarks for the depth measurement."""
+        """A keyframe was marginalized (before the back end sees it): remember its live scale
+        and its VO step from the previous keyframe."""
         step = None if kf.T_prevkf_kf is None else float(np.linalg.norm(kf.T_prevkf_kf[:3, 3]))
         with self._lock:
             rec = {"frame_index": int(kf.frame_index), "t_ns": int(kf.t_ns), "kf_id": int(kf.kf_id),
@@ -83,27 +70,14 @@ class ScaleHistory:
                    "step_vo": step, "scale_factors": None, "scale_measured_median": None}
             self._keyframes.append(rec)
             self._by_frame[rec["frame_index"]] = rec
-            if self.records_measurements and kf.image is not None:
-                uv = np.asarray(kf.landmarks_uv_px, dtype=float).reshape(-1, 2)
-                xi = np.asarray(kf.landmarks_inv_depth, dtype=float).reshape(-1)
-                self._pending[id(kf.image)] = (weakref.ref(kf.image), rec, uv, xi)
-                while len(self._pending) > self.graph_config.depth_queue_size + _PENDING_MARGIN:
-                    self._pending.popitem(last=False)
 
-    def on_depth(self, image: np.ndarray, inv_depth_map_per_m: np.ndarray) -> None:
-        """The depth source answered for ``image``: record that keyframe's measurements."""
-        from metricslam.depth.sample import sample_map
-        from metricslam.slam.graph.scale_factor import scale_measurements
-
+    def on_scale_measured(self, ev: ScaleMeasured) -> None:
+        """The back end turned a keyframe's depth answer into scale measurements (or failed)."""
+        s = np.asarray(ev.scales, dtype=float)
         with self._lock:
-            entry = self._pending.pop(id(image), None)
-        if entry is None or entry[0]() is not image:
-            return
-        _, rec, uv, xi = entry
-        z = sample_map(inv_depth_map_per_m, uv, (int(image.shape[1]), int(image.shape[0])))
-        s = scale_measurements(xi, z, self.graph_config)
-        s = s[np.isfinite(s) & (s > 0)]
-        with self._lock:
+            rec = self._by_frame.get(int(ev.frame_index))
+            if rec is None:
+                return
             rec["scale_factors"] = int(s.size)
             rec["scale_measured_median"] = float(np.median(s)) if s.size else None
 
@@ -147,24 +121,3 @@ class ScaleHistory:
         product ``scale_live`` after it (world units per ``VO₀`` unit)."""
         with self._lock:
             return [dict(c) for c in self._corrections]
-
-
-class RecordingDepthSource:
-    """A :class:`DepthSource` that passes every answer on to a :class:`ScaleHistory`.
-
-    Wrap the back end's source with it (``make_backend(..., depth_source=...)``) to record each
-    keyframe's learned scale measurements; answers and errors are passed through unchanged.
-    """
-
-    def __init__(self, inner: DepthSource, history: ScaleHistory) -> None:
-        self.inner = inner
-        self.history = history
-        history.records_measurements = True
-
-    def inv_depth_map(self, image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
-        inv_map = self.inner.inv_depth_map(image, camera)
-        try:
-            self.history.on_depth(image, inv_map)
-        except Exception:  # recording must never cost a keyframe its scale
-            log.exception("scale history: recording a depth answer failed")
-        return inv_map

@@ -3,7 +3,8 @@
 Used by ``metricslam run``, the SLAM service (one session per camera), the benchmarks and the
 tests, so they cannot drift apart. The session is a :class:`~metricslam.slam.pipeline.SlamPipeline`
 (local VO + optional global Sim(3) back end with loop closure and learned scale factors) whose
-:class:`~metricslam.slam.scale_history.ScaleHistory` records the scale estimate over time.
+:class:`~metricslam.slam.scale_history.ScaleHistory` records the scale estimate over time from the
+back end's events (``session.backend.events``, :mod:`metricslam.slam.events`).
 
 Example::
 
@@ -23,7 +24,7 @@ from metricslam.camera import PinholeCamera
 from metricslam.slam.backend_factory import make_backend
 from metricslam.slam.depth_source import DepthSource, OnnxDepthSource
 from metricslam.slam.pipeline import SlamPipeline
-from metricslam.slam.scale_history import RecordingDepthSource, ScaleHistory
+from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.system_config import DEFAULT_PRESET, SystemConfig
 
 log = logging.getLogger(__name__)
@@ -50,15 +51,16 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
     """
     vo_config = config.vo_config(default_preset)
     graph_config = config.graph_config()
-    history = ScaleHistory(graph_config)
+    history = ScaleHistory()
     backend = None
     if not config.vo_only:
         source = None
         if config.use_scale:
-            inner = depth_source if depth_source is not None else OnnxDepthSource(config.depth.model_path)
-            source = RecordingDepthSource(inner, history)
+            source = depth_source if depth_source is not None else OnnxDepthSource(config.depth.model_path)
         backend = make_backend(camera, use_scale=config.use_scale, depth_source=source,
                                config=graph_config)
+        if source is not None:
+            history.attach(backend.events)
     log.debug("built a %s session: VO %s", config.mode, vo_config.model_dump())
     return SlamPipeline(camera, vo_config, backend=backend, scale_history=history)
 

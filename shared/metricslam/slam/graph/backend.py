@@ -32,6 +32,7 @@ import numpy as np
 from metricslam.errors import GraphError, MetricSlamError
 from metricslam.geometry import sim3
 from metricslam.slam.depth_source import DepthSource
+from metricslam.slam.events import EventBus, ScaleMeasured, Solved, WarpApplied
 from metricslam.slam.graph.backend_loops import LoopHandling
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import (
@@ -63,6 +64,8 @@ class GlobalBackend(LoopHandling):
         self.config = config or GraphConfig()
         self.depth_source = depth_source
         self.loop_detector = loop_detector
+        #: what the back end did (:mod:`metricslam.slam.events`): subscribe here to observe it
+        self.events = EventBus()
         self.graph = GlobalPoseGraph(self.config, anchor_scale=depth_source is None)
         self.history = VoFrameHistory()
         self._lock = threading.RLock()  # guards graph + records + correction state
@@ -107,8 +110,7 @@ class GlobalBackend(LoopHandling):
             with self._lock:
                 self._integrate(kf, epoch)
                 if self.depth_source is not None:
-                    scales, inv_map = self._measure_scale(kf.kf_id, kf.image, kf.camera,
-                                                          kf.landmarks_uv_px, kf.landmarks_inv_depth)
+                    scales, inv_map = self._measure_scale(kf)
                     if scales is not None:
                         self._pending_scales[kf.kf_id] = scales
                     self._depth_done[kf.kf_id] = inv_map
@@ -121,10 +123,9 @@ class GlobalBackend(LoopHandling):
             if self.depth_source is not None:
                 if len(self._depth_requests) >= self.config.depth_queue_size:
                     dropped = self._depth_requests.popleft()
-                    self._depth_dropped_ids.add(int(dropped[0]))
+                    self._depth_dropped_ids.add(int(dropped.kf_id))
                     self._stats["depth_dropped"] += 1
-                self._depth_requests.append((kf.kf_id, kf.image, kf.camera, kf.landmarks_uv_px,
-                                             kf.landmarks_inv_depth))
+                self._depth_requests.append(kf)
             self._cv.notify_all()
 
     def take_correction(self) -> np.ndarray | None:
@@ -143,9 +144,10 @@ class GlobalBackend(LoopHandling):
             self._pending_correction = None
             S_ve_n = self.history.between(epoch_n, self.history.epoch) @ T_vo_n
             S_new_vo = orthonormalize(S_world_n @ sim3.inverse(orthonormalize(S_ve_n)))
-            self.history.issue(S_new_vo)
+            epoch = self.history.issue(S_new_vo)
             self._stats["corrections"] += 1
-            return S_new_vo
+        self.events.emit(WarpApplied(S_new_vo, sim3.scale(S_new_vo), epoch))
+        return S_new_vo
 
     def _offer_correction(self) -> None:
         """After a solve (caller holds ``_lock``): remember the newest keyframe's solved pose."""
@@ -236,28 +238,39 @@ class GlobalBackend(LoopHandling):
         }
 
     # -- work ---------------------------------------------------------------------------------
-    def _measure_scale(self, kf_id, image, camera, uv_px, inv_depth) -> tuple[np.ndarray | None,
-                                                                              np.ndarray | None]:
+    def _measure_scale(self, kf: MarginalizedKeyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Depth request -> (per-landmark scale measurements, the metric inverse-depth map
-        (h, w) 1/m kept for loop verification); ``(None, None)`` on failure."""
+        (h, w) 1/m kept for loop verification); ``(None, None)`` on failure. Emits
+        :class:`~metricslam.slam.events.ScaleMeasured` either way."""
         from metricslam.depth.sample import sample_map
 
         self._stats["depth_requests"] += 1
+        image = kf.image
+        size = (int(image.shape[1]), int(image.shape[0]))
+        uv = np.asarray(kf.landmarks_uv_px, dtype=float).reshape(-1, 2)
+        xi = np.asarray(kf.landmarks_inv_depth, dtype=float).reshape(-1)
         t0 = time.perf_counter()
+        error = ""
         try:
-            inv_map = self.depth_source.inv_depth_map(image, camera)
-            z = sample_map(inv_map, np.asarray(uv_px, dtype=float).reshape(-1, 2),
-                           (int(image.shape[1]), int(image.shape[0])))
+            inv_map = self.depth_source.inv_depth_map(image, kf.camera)
+            z = sample_map(inv_map, uv, size)
         except MetricSlamError as exc:  # DepthSourceError, ImageError: skip this keyframe
-            self._stats["depth_failures"] += 1
-            log.warning("no scale factors for keyframe %d: %s", kf_id, exc)
-            return None, None
+            error = str(exc)
+            log.warning("no scale factors for keyframe %d: %s", kf.kf_id, exc)
         except Exception as exc:  # noqa: BLE001 -- a foreign source must never kill the worker
+            error = f"{type(exc).__name__}: {exc}"
+            log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf.kf_id, exc)
+        if error:
             self._stats["depth_failures"] += 1
-            log.warning("depth source raised %s for keyframe %d: %s", type(exc).__name__, kf_id, exc)
+            self.events.emit(ScaleMeasured(int(kf.kf_id), int(kf.frame_index), int(kf.t_ns), uv, xi,
+                                           np.empty(0), np.empty(0), None, size, error))
             return None, None
         self._depth_ms.append(1e3 * (time.perf_counter() - t0))
-        return scale_measurements(inv_depth, z, self.config), np.asarray(inv_map, dtype=np.float32)
+        scales = scale_measurements(xi, z, self.config)
+        inv_map = np.asarray(inv_map, dtype=np.float32)
+        self.events.emit(ScaleMeasured(int(kf.kf_id), int(kf.frame_index), int(kf.t_ns), uv, xi,
+                                       np.asarray(z, dtype=float), scales, inv_map, size))
+        return scales, inv_map
 
     def _integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
         """Insert one keyframe (odometry or prior) and queue its loop query. Caller holds the lock."""
@@ -315,9 +328,13 @@ class GlobalBackend(LoopHandling):
             return
         if res["loops_removed"]:
             self._loops = [lp for lp in self._loops if self._loop_still_in_graph(lp)]
-        self._solve_ms.append(1e3 * (time.perf_counter() - t0))
+        solve_ms = 1e3 * (time.perf_counter() - t0)
+        self._solve_ms.append(solve_ms)
         self._scale_factors_solved = n_before
         self._offer_correction()
+        newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
+        self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
+                                int(res["loops_removed"]), solve_ms))
 
     # -- workers ------------------------------------------------------------------------------
     def _depth_worker(self) -> None:
@@ -331,10 +348,10 @@ class GlobalBackend(LoopHandling):
                 self._busy += 1
             res = (None, None)
             try:
-                res = self._measure_scale(*req)
+                res = self._measure_scale(req)
             finally:
                 with self._cv:
-                    self._scale_results.append((req[0], *res))
+                    self._scale_results.append((req.kf_id, *res))
                     self._busy -= 1
                     self._cv.notify_all()
 

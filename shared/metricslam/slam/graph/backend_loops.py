@@ -3,7 +3,7 @@
 A mixin: it runs on the back end's own state (its lock held by the caller): ``_loop_waiting``
 (keyframes in order, waiting for their depth map), ``_depth_done`` / ``_depth_dropped_ids``,
 ``_pending_loops`` (verified, gated after the next solve), ``_loops``, ``_records``, ``graph``,
-``loop_detector``, ``depth_source`` and ``config``.
+``loop_detector``, ``depth_source``, ``events`` and ``config``.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from metricslam.errors import MetricSlamError
+from metricslam.slam.events import LoopAccepted
 from metricslam.slam.graph.records import LoopRecord
 
 log = logging.getLogger("metricslam.slam.graph.backend")
@@ -68,8 +69,11 @@ class LoopHandling:
         log.info("loop %d -> %d: %s (d2=%.1f, %d inliers)", cand.kf_old, cand.kf_new, decision.reason,
                  decision.mahalanobis_sq, cand.n_inliers)
         if decision.accepted:
-            self._loops.append(LoopRecord(cand.kf_old, cand.kf_new, self._records[cand.kf_old].frame_index,
-                                          self._records[cand.kf_new].frame_index, cand.n_inliers))
+            rec = LoopRecord(cand.kf_old, cand.kf_new, self._records[cand.kf_old].frame_index,
+                             self._records[cand.kf_new].frame_index, cand.n_inliers)
+            self._loops.append(rec)
+            self.events.emit(LoopAccepted(rec.kf_old, rec.kf_new, rec.frame_old, rec.frame_new,
+                                          rec.n_inliers))
 
     def _loop_still_in_graph(self, lp: LoopRecord) -> bool:
         return any((v[0], v[1]) == (lp.kf_old, lp.kf_new) for v in self.graph._loop_indices.values())

@@ -1,0 +1,128 @@
+"""What the global back end did, as typed events (``GlobalBackend.events``).
+
+Observers (the scale history, the Rerun view, the status publisher, benchmarks) subscribe to an
+:class:`EventBus` instead of wrapping the back end's depth source or reading its private state.
+Events are frozen dataclasses; their arrays are the back end's own (do not modify them).
+
+Threading: in threaded mode :class:`ScaleMeasured` is emitted on the depth worker's thread and
+the others on the graph worker's (or the tracking thread for :class:`WarpApplied`); with
+``GraphConfig.inline`` everything is emitted on the caller's thread, in a deterministic order.
+A subscriber must be quick and thread-safe; an exception in one is logged and never reaches the
+back end (observing must not change what the system estimates).
+
+Example::
+
+    session = build_session(camera, config)
+    session.backend.events.subscribe(lambda ev: print(ev.frame_index, len(ev.scales)),
+                                     ScaleMeasured)
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ScaleMeasured:
+    """A keyframe's depth request was answered (or failed) and turned into scale measurements.
+
+    Attributes:
+        kf_id, frame_index, t_ns: the keyframe.
+        landmarks_uv_px: (M, 2) landmark pixels in the keyframe image.
+        landmarks_inv_depth: (M,) VO inverse depths ξ_j (1 / keyframe VO units).
+        net_inv_depth_per_m: (M,) the depth source's metric inverse depth z_j (1/m) sampled at
+            the landmarks (NaN where it could not be sampled); empty when the request failed.
+        scales: (K,) the measurements ``ξ_j / z_j`` the graph receives (metres per keyframe VO
+            unit), after the filters of :func:`~metricslam.slam.graph.scale_factor.scale_measurements`.
+        inv_depth_map_per_m: (h, w) the answer itself (1/m), or None when the request failed.
+        image_size: (width, height) px of the keyframe image.
+        error: why the request failed ("" when it did not).
+    """
+
+    kf_id: int
+    frame_index: int
+    t_ns: int
+    landmarks_uv_px: np.ndarray
+    landmarks_inv_depth: np.ndarray
+    net_inv_depth_per_m: np.ndarray
+    scales: np.ndarray
+    inv_depth_map_per_m: np.ndarray | None
+    image_size: tuple[int, int]
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class Solved:
+    """One incremental solve of the global graph finished.
+
+    Attributes:
+        n_keyframes, n_scale_factors: the graph's size after the solve.
+        newest_frame_index: frame index of the newest keyframe in the graph.
+        loops_removed: loop factors the solve removed as inconsistent.
+        solve_ms: wall time of the solve (ms).
+    """
+
+    n_keyframes: int
+    n_scale_factors: int
+    newest_frame_index: int
+    loops_removed: int
+    solve_ms: float
+
+
+@dataclass(frozen=True)
+class LoopAccepted:
+    """A verified loop passed the consistency gate and is in the graph."""
+
+    kf_old: int
+    kf_new: int
+    frame_old: int
+    frame_new: int
+    n_inliers: int
+
+
+@dataclass(frozen=True)
+class WarpApplied:
+    """The back end handed the VO its metric warp ``S_new_vo`` (4, 4) Sim(3) (paper §III-D);
+    ``scale`` is its scale (new units per old VO unit), ``epoch`` the VO frame it starts."""
+
+    S_new_vo: np.ndarray
+    scale: float
+    epoch: int
+
+
+Event = ScaleMeasured | Solved | LoopAccepted | WarpApplied
+
+
+class EventBus:
+    """Synchronous publish/subscribe for back-end events (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._subscribers: list[tuple[Callable[[Event], None], tuple[type, ...]]] = []
+
+    def subscribe(self, callback: Callable[[Event], None], *types: type) -> None:
+        """Call ``callback(event)`` for every event of the given types (all types when none)."""
+        with self._lock:
+            self._subscribers.append((callback, tuple(types)))
+
+    def unsubscribe(self, callback: Callable[[Event], None]) -> None:
+        with self._lock:
+            self._subscribers = [s for s in self._subscribers if s[0] is not callback]
+
+    def emit(self, event: Event) -> None:
+        with self._lock:
+            subscribers = list(self._subscribers)
+        for callback, types in subscribers:
+            if types and not isinstance(event, types):
+                continue
+            try:
+                callback(event)
+            except Exception:  # noqa: BLE001 -- observing must never change the estimate
+                log.exception("event subscriber %r failed on %s", callback, type(event).__name__)
