@@ -34,6 +34,10 @@ class LossConfig(BaseModel):
     #: Huber threshold of the supervision term in ``sup_space`` units (d_frac: 0.005 = 2.6 px at
     #: 512 wide; log: 0.05 = 5 %).
     huber_delta: float = Field(0.005, gt=0)
+    #: how block-matching / LiDAR targets are reduced to the coarse scales: "mean" of the valid
+    #: disparities per cell, or their "median" (what the SGBM oracle of bench/landmark_depth.py
+    #: scores; the mean leans to the nearer surface at depth edges)
+    label_pooling: Literal["mean", "median"] = "mean"
 
 
 class DepthFramesConfig(BaseModel):
@@ -112,7 +116,7 @@ class TrainConfig(BaseModel):
     def from_yaml(cls, path: str | Path) -> "TrainConfig":
         p = Path(path)
         if not p.is_file():
-            raise TrainingError(f"config {p} does not exist (see configs/train_depth.yaml for an example)")
+            raise TrainingError(f"config {p} does not exist (see training/configs/shipped/train_depth.yaml for an example)")
         try:
             raw = yaml.safe_load(p.read_text()) or {}
             return cls(**raw)

@@ -225,7 +225,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             outputs = net((left - cfg.norm_mean) / cfg.norm_std)
             loss, terms = total_loss(outputs, left, right, bm_l, bm_r, ratio, weights, cfg.loss.scales,
                                      cfg.loss.huber_delta, cfg.loss.sup_space == "log",
-                                     stereo if cfg.depth_frames else None)
+                                     stereo if cfg.depth_frames else None, cfg.loss.label_pooling)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
