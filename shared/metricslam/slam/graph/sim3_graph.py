@@ -368,3 +368,7 @@ class GlobalPoseGraph:
     def n_loops(self) -> int:
         return self.n_loops_accepted
 
+    def loop_pairs(self) -> set[tuple[int, int]]:
+        """``(kf_old, kf_new)`` of every loop factor now in the graph."""
+        return {(v[0], v[1]) for v in self._loop_indices.values()}
+

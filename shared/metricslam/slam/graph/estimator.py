@@ -1,0 +1,258 @@
+"""``GlobalEstimator``: the global back end's whole algorithm, single-threaded.
+
+Integrate a marginalized keyframe (odometry or a new segment's link), take its learned scale
+measurements, run loop queries (waiting for the keyframe's depth map in scale mode), add the
+scale factors, solve (ISAM2), gate and add verified loops, and compute the metric warp for the
+VO with all the epoch bookkeeping (:mod:`.odometry`). No threads, no locks: the scheduler
+(:class:`~metricslam.slam.graph.backend.GlobalBackend`) calls it from one thread at a time —
+inline (deterministic) or from its graph worker — and owns the queues (Basalt's split of an
+estimator from the thread that feeds it). What it does is announced on ``events``
+(:mod:`metricslam.slam.events`).
+
+The one exception is :meth:`GlobalEstimator.issue_warp`, which the tracking thread calls while a
+solve may be running: it touches only the :class:`~.odometry.VoFrameHistory` (its own lock) and
+the solved pose handed over by :meth:`GlobalEstimator.solve`.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from metricslam.errors import GraphError, MetricSlamError
+from metricslam.geometry import sim3
+from metricslam.slam.events import EventBus, LoopAccepted, Solved
+from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.graph.odometry import (
+    VoFrameHistory,
+    odometry_information,
+    orthonormalize,
+    relative_sim3,
+    resolve_epoch,
+)
+from metricslam.slam.graph.records import KeyframeRecord, LoopRecord
+from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
+from metricslam.slam.types import MarginalizedKeyframe
+
+log = logging.getLogger("metricslam.slam.graph.backend")
+
+
+@dataclass(frozen=True)
+class SolvedPose:
+    """The newest keyframe's pose after a solve: ``T_vo_kf`` (4, 4) in the VO frame of ``epoch``
+    and its solved ``S_world_kf`` (4, 4). The warp for the VO is computed from it."""
+
+    T_vo_kf: np.ndarray
+    epoch: int
+    S_world_kf: np.ndarray
+
+
+class GlobalEstimator:
+    """The global graph and everything the back end keeps about keyframes and loops.
+
+    Args:
+        config: graph, loop and scale-factor parameters.
+        use_scale: learned scale factors arrive (else the first keyframe's scale is anchored).
+        loop_detector: a :class:`metricslam.slam.loop.LoopDetector`, or None (no loops).
+        events: where :class:`~metricslam.slam.events.Solved` and ``LoopAccepted`` are emitted.
+    """
+
+    def __init__(self, config: GraphConfig, use_scale: bool, loop_detector: object | None,
+                 events: EventBus) -> None:
+        self.config = config
+        self.use_scale = use_scale
+        self.loop_detector = loop_detector
+        self.events = events
+        self.graph = GlobalPoseGraph(config, anchor_scale=not use_scale)
+        self.history = VoFrameHistory()
+        self.loops: list[LoopRecord] = []
+        self.loops_verified = 0
+        self.scale_factors_solved = 0
+        self.counters: collections.Counter = collections.Counter()
+        self.solve_ms: list[float] = []
+        self.loop_ms: list[float] = []
+        self.solved: SolvedPose | None = None  # newest solve's pose, taken by the scheduler
+        self._records: dict[int, KeyframeRecord] = {}
+        self._last_of_segment: dict[int, int] = {}
+        self._newest_kf: int | None = None
+        self._pending_scales: dict[int, np.ndarray] = {}
+        self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
+        # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
+        # finished depth requests (kf_id -> map or None on failure) and dropped request ids
+        self._loop_waiting: collections.deque = collections.deque()
+        self._depth_done: dict[int, np.ndarray | None] = {}
+        self._depth_dropped_ids: set[int] = set()
+
+    # -- inputs -------------------------------------------------------------------------------
+    def integrate(self, kf: MarginalizedKeyframe, epoch: int) -> None:
+        """Insert one keyframe (odometry, first prior or a new segment's link) in the VO frame of
+        ``epoch``, and queue its loop query."""
+        prev_id = self._last_of_segment.get(int(kf.segment_id))
+        T_vo_kf = np.asarray(kf.T_vo_kf, dtype=float)
+        S_prev_k = None
+        if prev_id is not None:
+            prev = self._records[prev_id]
+            epoch, S_prev_k, consistent = resolve_epoch(self.history, prev.T_vo_kf, prev.epoch,
+                                                        T_vo_kf, kf.T_prevkf_kf, epoch)
+            if kf.T_prevkf_kf is not None and not consistent:
+                self.counters["epoch_mismatches"] += 1
+                log.warning("keyframe %d: T_vo_kf matches no recent VO frame; using the newest",
+                            kf.kf_id)
+        rec = KeyframeRecord(int(kf.kf_id), int(kf.frame_index), int(kf.segment_id), epoch, T_vo_kf)
+        if prev_id is not None:
+            guess = self.graph.estimate(prev_id) @ S_prev_k
+            info = odometry_information(S_prev_k, kf.information, self.config)
+            rec.step_length = max(float(np.linalg.norm(S_prev_k[:3, 3])), 1e-6)
+            self.graph.add_keyframe(rec.kf_id, guess, prev_id, S_prev_k, info)
+        elif self._newest_kf is None:
+            self.graph.add_keyframe(rec.kf_id, T_vo_kf)
+        else:  # new tracking segment: the VO restarts from its last known pose, so link it to
+            # the newest keyframe by a loose relative factor (a loop can tighten it later)
+            last = self._records[self._newest_kf]
+            S_last_k = relative_sim3(last.T_vo_kf, T_vo_kf, self.history.between(last.epoch, epoch))
+            guess = self.graph.estimate(last.kf_id) @ S_last_k
+            t_len = float(np.linalg.norm(S_last_k[:3, 3]))
+            sig = np.array([0.2] * 3 + [max(t_len, 5.0 * last.step_length)] * 3 + [0.5])
+            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_last_k, np.diag(1.0 / sig**2))
+            self.counters["segment_links"] += 1
+        self._records[rec.kf_id] = rec
+        self._last_of_segment[rec.segment_id] = rec.kf_id
+        self._newest_kf = rec.kf_id
+        if self.loop_detector is not None:
+            self._loop_waiting.append(kf)
+
+    def add_depth_result(self, kf_id: int, scales: np.ndarray | None, inv_map: np.ndarray | None) -> None:
+        """A keyframe's depth request finished: its scale measurements (None on failure) and the
+        metric inverse-depth map (kept for its loop query)."""
+        if scales is not None:
+            self._pending_scales[int(kf_id)] = scales
+        if self.loop_detector is not None:
+            self._depth_done[int(kf_id)] = inv_map
+
+    def depth_dropped(self, kf_id: int) -> None:
+        """A keyframe's depth request was dropped (queue full): its loop query goes without."""
+        self._depth_dropped_ids.add(int(kf_id))
+
+    # -- work ---------------------------------------------------------------------------------
+    def update(self) -> None:
+        """After new inputs: loop queries that can run, scale factors, one solve."""
+        self._run_loop_queries(final=False)
+        self._flush_scales()
+        self.solve()
+
+    def finish(self) -> None:
+        """At close: the remaining loop queries and scale factors, then a longer final solve."""
+        self._run_loop_queries(final=True)
+        self._flush_scales()
+        if self._pending_loops:
+            self.solve()
+        try:
+            self.graph.solve(extra_iterations=max(self.config.extra_iterations, 5))
+            self._hand_over_newest()
+        except GraphError as exc:
+            log.warning("final global solve failed: %s", exc)
+
+    def solve(self) -> None:
+        """One incremental solve; verified loops are gated against it, added, and solved again."""
+        t0 = time.perf_counter()
+        n_before = self.graph.n_scale_factors
+        try:
+            res = self.graph.solve()
+            if self._pending_loops:  # gate against the solved graph, then solve with the loops
+                for cand in self._pending_loops:
+                    self._add_loop(cand)
+                self._pending_loops = []
+                res2 = self.graph.solve()
+                res = {**res2, "loops_removed": res["loops_removed"] + res2["loops_removed"]}
+        except GraphError as exc:
+            log.warning("global solve failed: %s", exc)
+            return
+        if res["loops_removed"]:
+            pairs = self.graph.loop_pairs()
+            self.loops = [lp for lp in self.loops if (lp.kf_old, lp.kf_new) in pairs]
+        solve_ms = 1e3 * (time.perf_counter() - t0)
+        self.solve_ms.append(solve_ms)
+        self.scale_factors_solved = n_before
+        self._hand_over_newest()
+        newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
+        self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
+                                int(res["loops_removed"]), solve_ms))
+
+    def issue_warp(self, solved: SolvedPose) -> np.ndarray:
+        """``S_new_vo`` (4, 4): maps the current VO frame onto the metric world frame so that the
+        solved keyframe lands on its graph pose; recorded as the start of a new VO epoch.
+
+        Callable from the tracking thread during a solve (see the module docstring).
+        """
+        S_ve_n = self.history.between(solved.epoch, self.history.epoch) @ solved.T_vo_kf
+        S_new_vo = orthonormalize(solved.S_world_kf @ sim3.inverse(orthonormalize(S_ve_n)))
+        self.history.issue(S_new_vo)
+        return S_new_vo
+
+    def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Input frame index -> solved ``S_world_kf`` (4, 4) of every keyframe in the graph."""
+        return {self._records[k].frame_index: S for k, S in self.graph.estimates().items()}
+
+    # -- internals ----------------------------------------------------------------------------
+    def _hand_over_newest(self) -> None:
+        if self._newest_kf is None:
+            return
+        rec = self._records[self._newest_kf]
+        self.solved = SolvedPose(rec.T_vo_kf, rec.epoch, self.graph.estimate(rec.kf_id))
+
+    def _flush_scales(self) -> None:
+        for kf_id in [k for k in self._pending_scales if self.graph.has(k)]:
+            self.graph.add_scale_measurements(kf_id, self._pending_scales.pop(kf_id))
+
+    def _run_loop_queries(self, final: bool) -> None:
+        """Query loops for waiting keyframes, in order, once each has its depth map (scale mode;
+        a failed or dropped depth request, or ``final``, lets it go without)."""
+        while self._loop_waiting:
+            kf = self._loop_waiting[0]
+            k = int(kf.kf_id)
+            if not self.use_scale or k in self._depth_done:
+                inv_map = self._depth_done.pop(k, None)
+            elif final or k in self._depth_dropped_ids or any(d > k for d in self._depth_done):
+                self._depth_dropped_ids.discard(k)
+                inv_map = None
+            else:
+                return
+            self._loop_waiting.popleft()
+            t0 = time.perf_counter()
+            try:
+                candidates = self.loop_detector.add_and_query(
+                    k, kf.image, kf.camera, kf.landmarks_uv_px, kf.landmarks_inv_depth,
+                    inv_depth_map=inv_map, T_prevkf_kf=kf.T_prevkf_kf)
+            except MetricSlamError as exc:
+                log.warning("loop detection failed on keyframe %d: %s", k, exc)
+                candidates = []
+            self.loop_ms.append(1e3 * (time.perf_counter() - t0))
+            self.loops_verified += len(candidates)
+            # added after the next solve: the gate needs both keyframes inside ISAM2 (their
+            # joint marginal); the newest keyframe is only pending until then
+            self._pending_loops.extend(candidates)
+
+    def _add_loop(self, cand) -> None:
+        sig = getattr(cand, "sigmas", None)
+        if sig is not None:  # measured from geometry with its own covariance (floors only)
+            sig = np.maximum(np.asarray(sig, dtype=float),
+                             [1e-4] * 3 + [self.config.odom_sigma_trans_min] * 3 + [0.005])
+        else:
+            step = self._records[cand.kf_old].step_length
+            t_len = float(np.linalg.norm(cand.S_old_new[:3, 3]))
+            sig_t = max(self.config.loop_sigma_trans_rel * max(t_len, step), self.config.odom_sigma_trans_min)
+            sig = np.array([self.config.loop_sigma_rot_rad] * 3 + [sig_t] * 3
+                           + [self.config.loop_sigma_log_scale])
+        decision = self.graph.add_loop(cand.kf_old, cand.kf_new, cand.S_old_new, sig)
+        log.info("loop %d -> %d: %s (d2=%.1f, %d inliers)", cand.kf_old, cand.kf_new, decision.reason,
+                 decision.mahalanobis_sq, cand.n_inliers)
+        if decision.accepted:
+            rec = LoopRecord(cand.kf_old, cand.kf_new, self._records[cand.kf_old].frame_index,
+                             self._records[cand.kf_new].frame_index, cand.n_inliers)
+            self.loops.append(rec)
+            self.events.emit(LoopAccepted(rec.kf_old, rec.kf_new, rec.frame_old, rec.frame_new,
+                                          rec.n_inliers))
