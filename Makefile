@@ -35,11 +35,11 @@ LINT_PATHS := shared services training bench tests
 lint: install-dev
 	$(BIN)/ruff check $(LINT_PATHS)
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/python bench/make_results.py --check
+	$(BIN)/python -m bench.make_results --check
 
 # README's results block and docs/results.md, generated from bench/results/*.json (habit 17)
 results: install
-	$(BIN)/python bench/make_results.py
+	$(BIN)/python -m bench.make_results
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

@@ -21,7 +21,7 @@ numbers are pooled within each repeat, then averaged), and the JSON keeps every 
 
 Example::
 
-    nice -n 5 .venv/bin/python bench/accuracy.py \\
+    nice -n 5 .venv/bin/python -m bench.accuracy \\
         --seq kitti06=/work/shared/data/kitti_odometry/sequences/06:/work/shared/data/kitti_odometry/poses/06.txt \\
         --trained-on kitti01,kitti03 --repeats 3 --keep /tmp/h10/runs --out bench/results/accuracy
 """
@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 from metricslam.errors import AlignmentError
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
@@ -289,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(args.keep)
     workdir.mkdir(parents=True, exist_ok=True)
     trained = {n for n in args.trained_on.split(",") if n}
-    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "machine": describe(),
+    report = {"command": command_line("bench.accuracy", argv), "machine": describe(),
               "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
               "repeats": n_rep, "sequences": [], "notes": list(args.note)}
     for spec in args.seq:

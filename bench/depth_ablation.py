@@ -8,7 +8,7 @@ KITTI stereo sequence (SGBM, textured pixels).
 
 Example::
 
-    .venv/bin/python bench/depth_ablation.py \\
+    .venv/bin/python -m bench.depth_ablation \\
         --run full=runs/depth_no06/step_000500.pt \\
         --run no_supervision=runs/ablation_no_sup/final.pt \\
         --run no_fine_to_coarse=runs/ablation_no_f2c/final.pt \\
@@ -23,11 +23,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # sibling benchmark module
-
-import depth_accuracy  # noqa: E402
-
-from metricslam.depth import DepthModel  # noqa: E402
+from bench import depth_accuracy
+from bench.machine import command_line
+from metricslam.depth import DepthModel
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.with_suffix(".json").write_text(json.dumps(results, indent=2))
         out.with_suffix(".md").write_text(
-            f"# Depth training ablation\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
+            f"# Depth training ablation\n\nCommand: `{command_line('bench.depth_ablation', argv)}`\n\n"
             + "".join(f"- `{k}`: {v['checkpoint']}\n" for k, v in results.items()) + f"\n{table}\n")
     return 0
 

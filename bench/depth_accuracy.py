@@ -1,7 +1,7 @@
 """Metric accuracy of the depth network (onnxruntime), against honest references.
 
 1. ``kitti_raw_lidar``: projected LiDAR depth of the left colour camera. Models trained with
-   ``depth_frames`` on part of it (``configs/train_depth_lidar*.yaml``: frames 26-77) must be
+   ``depth_frames`` on part of it (``training/configs/experiments/train_depth_lidar*.yaml``: frames 26-77) must be
    scored on the rest only: ``--lidar-frames 0:20``.
 2. A KITTI odometry stereo sequence held out of training (default 06): SGBM depth
    (left-right checked, full resolution) on textured pixels.
@@ -14,7 +14,7 @@ model, the trivial **flat-road prior**: a ground plane ``camera_height_m`` below
 
 Example::
 
-    .venv/bin/python bench/depth_accuracy.py --data ../shared/data \\
+    .venv/bin/python -m bench.depth_accuracy --data ../shared/data \\
         --model shared/metricslam/models/depth_l3.onnx --out bench/results/depth_accuracy
 """
 
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import sys
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.machine import command_line
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.datasets import open_sequence
 from metricslam.depth import DepthModel, sample_map
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frame-step", type=int, default=1)
     p.add_argument("--lidar-frames", type=_frame_range, default=(0, None), metavar="FIRST:STOP",
                    help="score LiDAR frames FIRST <= i < STOP only (default all; '0:20' is the part "
-                        "configs/train_depth_lidar*.yaml keep out of training)")
+                        "training/configs/experiments/train_depth_lidar*.yaml keep out of training)")
     p.add_argument("--min-depth-m", type=float, default=1.0)
     p.add_argument("--max-depth-m", type=float, default=80.0)
     p.add_argument("--camera-height-m", type=float, default=1.65)
@@ -226,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
 
     data = Path(args.data)
     model = DepthModel.load(args.model, threads=1)
-    results = {"command": " ".join([os.path.relpath(sys.executable), *sys.argv]), "model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
+    results = {"command": command_line("bench.depth_accuracy", argv), "model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
                "training_data": model.contract.training_data,
                "lidar": evaluate_lidar(model, data / args.lidar, args)}
     first, stop = args.lidar_frames
@@ -245,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         out.with_suffix(".json").write_text(json.dumps(results, indent=2))
         machine = f"{platform.machine()}, {platform.processor() or 'cpu'}, python {platform.python_version()}"
         out.with_suffix(".md").write_text(
-            f"# Depth accuracy\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
+            f"# Depth accuracy\n\nCommand: `{command_line('bench.depth_accuracy', argv)}`\n\n"
             f"Machine: {machine}. Model: `{model.contract.model_id}` ({model.contract.weights_precision}), trained on: {model.contract.training_data}.\n"
             f"Depth range {args.min_depth_m}–{args.max_depth_m} m; flat road = plane {args.camera_height_m} m "
             f"below the camera.\n\n{table}\n\nLiDAR per-frame median ratio: mean "

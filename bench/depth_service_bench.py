@@ -7,7 +7,7 @@ server still share the machine, which the report says).
 
 Example::
 
-    .venv/bin/python bench/depth_service_bench.py \\
+    .venv/bin/python -m bench.depth_service_bench \\
         --frames /work/shared/data/kitti_odometry/sequences/06/image_0 \\
         --out bench/results/depth_service.md
 """
@@ -18,7 +18,6 @@ import argparse
 import http.client
 import json
 import os
-import shlex
 import sys
 import threading
 import time
@@ -26,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from machine import describe
+from bench.machine import command_line, describe
 from metricslam_depth.process import ServiceProcess
 
 FX_PX = 718.856
@@ -179,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"soak {done} requests: RSS {rss_before:.1f} -> {samples[-1][1]:.1f} MiB, statuses {soak_statuses}")
     load_after = os.getloadavg()
 
-    command = " ".join(shlex.quote(a) for a in [".venv/bin/python", "bench/depth_service_bench.py", *(argv or sys.argv[1:])])
+    command = command_line("bench.depth_service_bench", argv)
     report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ run, convert). Median and 90th percentile over ``--repeats`` runs after ``--warm
 
 Example::
 
-    .venv/bin/python bench/depth_speed.py --out bench/results/depth_speed
+    .venv/bin/python -m bench.depth_speed --out bench/results/depth_speed
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.machine import command_line
 from metricslam.depth import DepthModel
 
 
@@ -76,13 +77,13 @@ def main(argv: list[str] | None = None) -> int:
         load = os.getloadavg()
         machine = (f"{platform.machine()}, {os.cpu_count()} CPUs, python {platform.python_version()}, "
                    f"load average at the end {load[0]:.2f} (this run itself adds about 1)")
-        command = " ".join([os.path.relpath(sys.executable), *sys.argv])
+        command = command_line("bench.depth_speed", argv)
         out.with_suffix(".json").write_text(json.dumps({"command": command, "model_id": c.model_id,
                                                         "weights_precision": c.weights_precision,
                                                         "input": [c.input_height, c.input_width],
                                                         "machine": machine, "results": results}, indent=2))
         out.with_suffix(".md").write_text(
-            f"# Depth model speed (onnxruntime, CPU)\n\nCommand: `{' '.join([Path(sys.executable).name, *sys.argv])}`\n\n"
+            f"# Depth model speed (onnxruntime, CPU)\n\nCommand: `{command}`\n\n"
             f"Machine: {machine}.\nModel `{c.model_id}` ({c.weights_precision}), input {c.input_height}x{c.input_width}, output "
             f"{c.output_height}x{c.output_width}, {c.params} parameters. {args.repeats} runs after {args.warmup} warm-up.\n\n"
             f"{table}\n")

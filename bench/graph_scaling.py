@@ -11,7 +11,7 @@ graph for comparison (skipped above ``--batch-max`` keyframes).
 
 Example::
 
-    .venv/bin/python bench/graph_scaling.py --sizes 100 1000 10000 --out bench/results/graph_scaling
+    .venv/bin/python -m bench.graph_scaling --sizes 100 1000 10000 --out bench/results/graph_scaling
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import time
 import gtsam
 import numpy as np
 
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.backend import GlobalBackend
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         machine = describe()
         lines = [
             "# Global graph solve time vs keyframes", "",
-            f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}", "",
+            f"Command: `{command_line('bench.graph_scaling', argv)}`  ", f"Machine: {machine}", "",
             f"Each keyframe: 1 odometry factor + {cfg.max_scale_landmarks} landmark scale measurements "
             f"(scale_factor_mode={cfg.scale_factor_mode}), one ISAM2 update (relinearize every "
             f"{cfg.relinearize_skip}). Update = everything the back end does per keyframe in the graph.",
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                          f"{r['loop_gate_ms']:.0f} | {r['loop_solve_ms']:.0f} | "
                          f"{r['end_error_m_before_loop']:.1f} → {r['end_error_m_after_loop']:.2f} | {b} | "
                          f"{r['scale_error_pct_max']:.1f} |")
-        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
+        write_results(args.out, {"rows": rows, "machine": machine, "command": command_line("bench.graph_scaling", argv)},
                       "\n".join(lines) + "\n")
     return 0
 

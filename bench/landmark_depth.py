@@ -59,7 +59,7 @@ models scored in one process share it. Single-threaded (OpenCV and onnxruntime).
 
 Example::
 
-    .venv/bin/python bench/landmark_depth.py \\
+    .venv/bin/python -m bench.landmark_depth \\
         --seq /work/shared/data/kitti_odometry/sequences/06 --gt /work/shared/data/kitti_odometry/poses/06.txt \\
         --seq /work/shared/data/kitti_raw_stereo/sequences/2011_09_26_drive_0013 \\
         --gt /work/shared/data/kitti_raw_stereo/poses/2011_09_26_drive_0013.txt \\
@@ -70,21 +70,20 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 from metricslam.datasets import open_sequence
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, sample_map
 from metricslam.slam.session_builder import preset_for
 from metricslam.stereo import block_matching_pair
-from gt_corners import intrinsics, track_corners, triangulate_gt
-from scale_upper_bound import disparity_at, pool_cells
-from slam_landmarks import scale_landmark_depths
+from bench.gt_corners import intrinsics, track_corners, triangulate_gt
+from bench.scale_upper_bound import disparity_at, pool_cells
+from bench.slam_landmarks import scale_landmark_depths
 
 #: range bins of the triangulated depth (m), lo <= z < hi (the last one includes 60 m)
 RANGE_BINS_M = ((2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0))
@@ -363,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     if len(args.seq) != len(args.gt):
         p.error(f"give one --gt per --seq ({len(args.seq)} --seq, {len(args.gt)} --gt)")
     cv2.setNumThreads(1)
-    command = f"{os.path.relpath(sys.executable)} bench/landmark_depth.py {shlex.join(argv)}"
+    command = command_line("bench.landmark_depth", argv)
     result = evaluate(list(zip(args.seq, args.gt)), args.model, args.name, stride=args.stride, gap=args.gap,
                       min_parallax_deg=args.min_parallax_deg, num_disparities=args.num_disparities,
                       oracle=not args.no_oracle, slam=args.slam, slam_preset_name=args.slam_preset)

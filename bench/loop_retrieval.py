@@ -12,7 +12,7 @@ online on the run's first 12 keyframes (what the detector does) and offline on t
 
 Example::
 
-    .venv/bin/python bench/loop_retrieval.py --seq /tmp/s3/val00 --seq /tmp/h12_synth00 \\
+    .venv/bin/python -m bench.loop_retrieval --seq /tmp/s3/val00 --seq /tmp/h12_synth00 \\
         --train-glob 'runs/synth_train/w2*/image_0/*.png' --out bench/results/loop_retrieval
 """
 
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
 from metricslam.slam.loop.vocabulary import BinaryVocabulary, BowDatabase
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += [f"| {r['sequence']} | {r['vocabulary']} | {r['words']} | {r['queries']} | {r['recall_at_5']:.2f} | "
               f"{r['median_rank']:.0f} |" for r in rows if r["queries"]]
     if args.out:
-        command = " ".join([".venv/bin/python", "bench/loop_retrieval.py", *(argv or sys.argv[1:])])
+        command = command_line("bench.loop_retrieval", argv)
         md = (f"# Loop retrieval recall per vocabulary\n\nCommand: `{command}`  \nMachine: {describe()}\n\n"
               + "\n".join(lines) + "\n")
         write_results(args.out, {"command": command, "rows": rows}, md)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +36,17 @@ def describe() -> str:
         load = "unknown"
     return (f"{cpu}, {os.cpu_count()} cores, {mem}, {platform.platform()}, Python "
             f"{platform.python_version()}, numpy {np.__version__}; load average {load}")
+
+
+def command_line(module: str, argv: Sequence[str] | None = None) -> str:
+    """The command that reproduces a run, for its results file: ``.venv/bin/python -m MODULE ARGS``.
+
+    ``module`` is the benchmark's dotted name (``"bench.speed"``), ``argv`` its arguments
+    (``sys.argv[1:]`` when ``None``). The interpreter is shown relative to the working directory,
+    the repository root where benchmarks run (``python -m bench.NAME``).
+    """
+    args = sys.argv[1:] if argv is None else list(argv)
+    return " ".join([os.path.relpath(sys.executable), "-m", module, *([shlex.join(args)] if args else [])])
 
 
 def write_results(out: str | Path, payload: dict, markdown: str) -> None:

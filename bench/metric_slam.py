@@ -8,7 +8,7 @@ loops detected (input frame pairs).
 
 Example::
 
-    .venv/bin/python bench/metric_slam.py \\
+    .venv/bin/python -m bench.metric_slam \\
         --seq kitti06=/work/shared/data/kitti_odometry/sequences/06:/work/shared/data/kitti_odometry/poses/06.txt \\
         --out bench/results/metric_slam
 """
@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 
 METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
 
@@ -116,7 +116,7 @@ def run_one(name: str, seq_dir: str, gt: str, no_scale: bool, workdir: Path, ext
 def render(rows: list[dict], commands: list[str], machine: str) -> str:
     """Markdown table of :func:`run_one` rows (also used by ``--render`` on saved JSON)."""
     lines = ["# Metric SLAM: learned scale vs --no-scale", "",
-             *(f"Command: `.venv/bin/python {c}`  " for c in commands),
+             *(f"Command: `{c if ' -m bench.' in c else '.venv/bin/python ' + c}`  " for c in commands),
              f"Machine: {machine}", "",
              "| run | frames | path m | scale ratio | scale err % | ATE SE(3) m | ATE % path | t_rel % | r_rel °/100 m | end err Sim(3) m | fps | keyframes | scale factors | loops verified / accepted (true) | accepted loops (frames) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -188,8 +188,9 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(r)
     if args.out:
         machine = describe()
-        write_results(args.out, {"rows": rows, "machine": machine, "command": " ".join(sys.argv)},
-                      render(rows, [" ".join(sys.argv)], machine))
+        command = command_line("bench.metric_slam", argv)
+        write_results(args.out, {"rows": rows, "machine": machine, "command": command},
+                      render(rows, [command], machine))
     return 0
 
 

@@ -18,7 +18,7 @@
 
 Example::
 
-    .venv/bin/python bench/plots.py --accuracy bench/results/accuracy.json \\
+    .venv/bin/python -m bench.plots --accuracy bench/results/accuracy.json \\
         --lidar-dir /work/shared/data/kitti_raw_lidar --lidar-frame 40 --out docs/img
 """
 

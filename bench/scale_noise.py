@@ -14,7 +14,7 @@ Use a rendered drive that is NOT a benchmark sequence, e.g.::
 
     metricslam synth /tmp/val05 --frames 2000 --seed 505 \\
         --trajectory ../shared/data/kitti_gt_poses_full/05.txt --size 620x188
-    .venv/bin/python bench/scale_noise.py --seq /tmp/val05 --out bench/results/scale_noise
+    .venv/bin/python -m bench.scale_noise --seq /tmp/val05 --out bench/results/scale_noise
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from machine import describe, write_results
+from bench.machine import command_line, describe, write_results
 from metricslam.datasets import open_sequence
 from metricslam.depth import DepthModel, sample_map
 from metricslam.trajectory.io import read_kitti_poses
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     table = "\n".join(lines)
     print(table)
     if args.out:
-        command = " ".join([".venv/bin/python", "bench/scale_noise.py", *(argv or sys.argv[1:])])
+        command = command_line("bench.scale_noise", argv)
         md = (f"# Scale noise: VO drift and network error on a validation drive\n\nCommand: `{command}`  \n"
               f"Machine: {describe()}\n\n{table}\n")
         write_results(args.out, {"command": command, "vo_drift": drift, "network": nets}, md)

@@ -29,7 +29,7 @@ Three depth sources per sequence (``--variants``):
 
 Example::
 
-    .venv/bin/python bench/scale_upper_bound.py --seq kitti06=/work/shared/data/kitti_odometry/sequences/06:/work/shared/data/kitti_odometry/poses/06.txt \\
+    .venv/bin/python -m bench.scale_upper_bound --seq kitti06=/work/shared/data/kitti_odometry/sequences/06:/work/shared/data/kitti_odometry/poses/06.txt \\
         --out bench/results/scale_upper_bound
 """
 
@@ -46,8 +46,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from gt_corners import intrinsics, triangulate_gt
-from machine import describe, write_results
+from bench.gt_corners import intrinsics, triangulate_gt
+from bench.machine import command_line, describe, write_results
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.slam.session_builder import build_session
 from metricslam.slam.system_config import SystemConfig
@@ -326,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         machine = describe()
         lines = ["# Upper bound: the same SLAM with stereo (SGBM) or rendered depth instead of the network", "",
-                 f"Command: `.venv/bin/python {' '.join(sys.argv)}`  ", f"Machine: {machine}  ",
+                 f"Command: `{command_line('bench.scale_upper_bound', argv)}`  ", f"Machine: {machine}  ",
                  f"Mode: {'live (threaded)' if args.live else 'deterministic (inline graph, BA in foreground)'}",
                  "", "| run | depth source | δ px | path m | scale err % | ATE SE(3) m | ATE % path | ATE Sim(3) m | t_rel % |",
                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -347,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {name} | {c['n']} | {c['d_sgbm_minus_d_gt_px']:+.2f} | {c['depth_ratio_sgbm_over_gt']:.3f} | "
                          f"{per_bin} | {100 * c['lk_negative_disparity_fraction']:.1f} % |")
         write_results(args.out, {"rows": rows, "stereo_check": checks, "machine": machine,
-                                 "command": " ".join(sys.argv), "live": bool(args.live)}, "\n".join(lines) + "\n")
+                                 "command": command_line("bench.scale_upper_bound", argv), "live": bool(args.live)}, "\n".join(lines) + "\n")
     return 0
 
 

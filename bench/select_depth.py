@@ -1,6 +1,6 @@
 """Depth-model selection by the rule committed with the candidates' configs (issue #16).
 
-The rule (written in ``configs/train_depth_v3_log.yaml`` and ``…_v3_dfrac.yaml`` before any
+The rule (written in ``training/configs/experiments/train_depth_v3_log.yaml`` and ``…_v3_dfrac.yaml`` before any
 candidate's number was seen):
 
 * candidates: the **EMA** weights of each training run at the given steps, exported to float32
@@ -17,7 +17,7 @@ checkpoints that the moving average is meant to damp; they are never candidates.
 
 Example::
 
-    .venv/bin/python bench/select_depth.py --run runs/depth_v3_log --run runs/depth_v3_dfrac \\
+    .venv/bin/python -m bench.select_depth --run runs/depth_v3_log --run runs/depth_v3_dfrac \\
         --steps 3000 4000 5000 6000 --data ../shared/data --out bench/results/depth_v3_selection
 """
 
@@ -26,8 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import os
-import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -35,13 +33,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from depth_accuracy import evaluate_lidar  # noqa: E402
-from landmark_depth import evaluate, summary  # noqa: E402
-from machine import describe, write_results  # noqa: E402
-
-from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel  # noqa: E402
+from bench.depth_accuracy import evaluate_lidar
+from bench.landmark_depth import evaluate, summary
+from bench.machine import command_line, describe, write_results
+from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel
 
 #: validation sequences of issue #16 (relative to --data): (sequence folder, ground-truth poses)
 VALIDATION = (("kitti_raw_stereo/sequences/2011_09_26_drive_0013", "kitti_raw_stereo/poses/2011_09_26_drive_0013.txt"),
@@ -101,7 +96,7 @@ def slam_check(model_path: Path, data: Path, workdir: Path) -> dict:
 
 
 def score_slam_rule(model_path: Path, data: Path, label: str, workdir: Path) -> dict:
-    """The v3-ft rule (``configs/train_depth_v3ft.yaml``): SLAM scale error on every validation
+    """The v3-ft rule (``training/configs/experiments/train_depth_v3ft.yaml``): SLAM scale error on every validation
     drive (score = the largest) and the landmark-weighted corner ratio per drive."""
     seqs = [(str(data / s), str(data / g)) for s, g in VALIDATION]
     corners = summary(evaluate(seqs, model_path, label, oracle=False, slam=True))
@@ -122,9 +117,9 @@ def apply_slam_rule(default: dict, candidates: list[dict], max_06_pct: float = 5
 
 
 def slam_rule_markdown(report: dict) -> str:
-    from make_results import slam_rule_table  # the results page renders the same table
+    from bench.make_results import slam_rule_table  # the results page renders the same table
 
-    return (f"# Depth v3-ft selection (rule in configs/train_depth_v3ft.yaml)\n\nCommand: `{report['command']}`  \n"
+    return (f"# Depth v3-ft selection (rule in training/configs/experiments/train_depth_v3ft.yaml)\n\nCommand: `{report['command']}`  \n"
             f"Machine: {report['machine']}\n\n{slam_rule_table(report)}\n"
             + (f"\nScore (the larger scale error) {report['winner']['score']:.1f} % vs the shipped model's "
                f"{report['default']['score']:.1f} %.\n" if report["winner"] else ""))
@@ -201,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     export_dir.mkdir(parents=True, exist_ok=True)
     if args.rule == "slam":
         return main_slam_rule(args, argv, data, export_dir)
-    report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
+    report = {"command": command_line("bench.select_depth", argv),
               "machine": describe(), "default": score(DEFAULT_MODEL_PATH, data, "default (shipped)"),
               "candidates": [], "raw": [], "spread": {}}
     tasks = [(run, step, w) for run in map(Path, args.run) for step in args.steps
@@ -242,7 +237,7 @@ def main_slam_rule(args, argv: list[str], data: Path, export_dir: Path) -> int:
         (f"{run.name}@{step}", export(run, step, "ema", export_dir)) for run, step in tasks]
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
         rows = pool.starmap(score_slam_rule, [(m, data, label, work) for label, m in models])
-    report = {"command": f"{os.path.relpath(sys.executable)} bench/select_depth.py {shlex.join(argv)}",
+    report = {"command": command_line("bench.select_depth", argv),
               "machine": describe(), "default": rows[0], "candidates": rows[1:]}
     report["winner"] = apply_slam_rule(report["default"], report["candidates"])
     report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])

@@ -14,7 +14,7 @@ Global solve time vs graph size is measured separately by ``bench/graph_scaling.
 
 Example::
 
-    nice -n 5 .venv/bin/python bench/speed.py --seq /tmp/h10/synth_loop1000 --out bench/results/speed
+    nice -n 5 .venv/bin/python -m bench.speed --seq /tmp/h10/synth_loop1000 --out bench/results/speed
 """
 
 from __future__ import annotations
@@ -22,15 +22,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shlex
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from accuracy import METRICSLAM, code_description
-from machine import describe, write_results
+from bench.accuracy import METRICSLAM, code_description
+from bench.machine import command_line, describe, write_results
 
 MODES = {"metric": [], "no-scale": ["--no-scale"], "vo-only": ["--vo-only"]}
 #: (key in ms_per_frame / ms_per_call, label)
@@ -126,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
     workdir = Path(tempfile.mkdtemp(prefix="metricslam_speed_"))
-    report = {"command": ".venv/bin/python " + shlex.join(sys.argv), "seq": args.seq,
+    report = {"command": command_line("bench.speed", argv), "seq": args.seq,
               "code": code_description(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "runs": [],
               "notes": list(args.note)}
     load_before = os.getloadavg()

@@ -12,7 +12,7 @@ Measures, for one seeded scene:
 
 Example::
 
-    .venv/bin/python bench/synth_speed.py --frames 100 --out bench/results/synth_speed.md
+    .venv/bin/python -m bench.synth_speed --frames 100 --out bench/results/synth_speed.md
 
 On a shared machine, ``BENCH_PREFIX="nice -n -10" nice -n -10 .venv/bin/python ...`` approximates
 an idle one (the prefix is only echoed into the report so the command is recorded exactly).
@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.machine import command_line
 from metricslam.synth import SynthConfig, SynthScene, generate_sequence
 from metricslam.synth import trajectory as trj
 
@@ -108,8 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     prefix = os.environ.get("BENCH_PREFIX", "")
-    cmd = (prefix + " " if prefix else "") + "python bench/synth_speed.py " + " ".join(
-        argv if argv is not None else sys.argv[1:])
+    cmd = (prefix + " " if prefix else "") + command_line("bench.synth_speed", argv)
     lines = [
         "# Synthetic stereo generation: speed and StereoSGBM sanity check",
         "",

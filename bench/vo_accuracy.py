@@ -9,7 +9,7 @@ separately). Ground truth is read only by the evaluator.
 Example (the synthetic sequence is rendered first; seed and length as in the results)::
 
     .venv/bin/metricslam synth /tmp/synth_vo_600 --frames 600 --seed 7 --path loop
-    .venv/bin/python bench/vo_accuracy.py \\
+    .venv/bin/python -m bench.vo_accuracy \\
         --seq ../shared/data/kitti_odometry/sequences/06 \\
         --seq ../shared/data/kitti_odometry/sequences/01 \\
         --seq /tmp/synth_vo_600 --out bench/results/vo.md
@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from machine import describe
+from bench.machine import command_line, describe
 from metricslam.datasets import open_sequence
 from metricslam.evaluation import evaluate_poses
 from metricslam.slam.session_builder import build_session, preset_for
@@ -121,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
                                              "r_rel_deg_per_100m", "fps_process", "cpu_ms_per_frame",
                                              "keyframes", "tracking_losses")}))
         rows.append(r)
-    command = "python bench/vo_accuracy.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = command_line("bench.vo_accuracy", argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(to_markdown(rows, command, host, args.note))
     args.out.with_suffix(".json").write_text(json.dumps({"command": command, "machine": host,

@@ -7,7 +7,7 @@ rates (no back-pressure) and times each frame from ``put`` to the arrival of its
 uses a fresh camera id, so a fresh SLAM session. A second stack with ``--session identity``
 (every frame answered with the identity pose) separates transport cost from SLAM cost.
 
-    .venv/bin/python bench/zenoh_latency.py --seq ../shared/data/kitti_odometry/sequences/06
+    .venv/bin/python -m bench.zenoh_latency --seq ../shared/data/kitti_odometry/sequences/06
     # writes bench/results/zenoh.md (and .json)
 """
 
@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.machine import command_line
 from metricslam.datasets import open_sequence
 from metricslam_slam.client import FramePublisher, PoseRecorder
 from metricslam_slam.demo import free_port
@@ -102,7 +103,7 @@ def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_
     lines = [
         "# SLAM service over Zenoh: latency, sustained rate, two cameras",
         "",
-        f"Command: `.venv/bin/python bench/zenoh_latency.py {' '.join(sys.argv[1:])}`  ",
+        f"Command: `{command_line('bench.zenoh_latency')}`  ",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
         f"Load average {os.getloadavg()[0]:.1f} at the end (the machine may be shared: compare "

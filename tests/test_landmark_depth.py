@@ -10,18 +10,13 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-if str(BENCH) not in sys.path:
-    sys.path.insert(0, str(BENCH))
-
-import gt_corners  # noqa: E402
-import landmark_depth as ld  # noqa: E402
+from bench import gt_corners
+from bench import landmark_depth as ld
 
 FRAMES = 13  # stride 3, gap 3: 4 frame pairs
 
@@ -139,7 +134,7 @@ def test_main_writes_json_and_markdown_with_the_command(drive, tmp_path) -> None
     assert ld.main(argv) == 0
     data = json.loads(out.with_suffix(".json").read_text())
     md = out.with_suffix(".md").read_text()
-    assert data["command"].endswith("bench/landmark_depth.py " + " ".join(argv))
+    assert data["command"].endswith("-m bench.landmark_depth " + " ".join(argv))
     assert data["command"] in md
     (name, res), = data["sequences"].items()
     assert data["model"]["path"].endswith("depth_l3_int8.onnx")

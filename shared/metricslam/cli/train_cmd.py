@@ -15,7 +15,7 @@ TRAIN_HINT = "training needs the train extra: pip install 'metricslam[train]'"
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("train", help="train the depth network", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", required=True, help="training YAML, e.g. configs/train_depth.yaml")
+    p.add_argument("--config", required=True, help="training YAML, e.g. training/configs/shipped/train_depth.yaml")
     p.add_argument("--export", help="also export the final model to this ONNX path")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     p.set_defaults(func=run)

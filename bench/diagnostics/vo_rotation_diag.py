@@ -18,7 +18,7 @@ fallback) and the yaw "scale" (sum of estimated yaw increments / sum of GT yaw i
 
 Example::
 
-    .venv/bin/python bench/vo_rotation_diag.py --seq ../shared/data/kitti_odometry/sequences/06 \\
+    .venv/bin/python -m bench.diagnostics.vo_rotation_diag --seq ../shared/data/kitti_odometry/sequences/06 \\
         --seq ../shared/data/kitti_odometry/sequences/01 --out bench/results/vo_rotation.json
 
 Ground truth is read only by the evaluation part.
@@ -28,12 +28,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
+from bench.machine import command_line
 from metricslam.datasets import open_sequence
 from metricslam.evaluation.kitti_metric import SHORT_LENGTHS_M, segment_errors
 from metricslam.geometry import so3
@@ -351,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(res, indent=1) + "\n")
     if args.md:
-        command = "python bench/vo_rotation_diag.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+        command = command_line("bench.diagnostics.vo_rotation_diag", argv)
         args.md.write_text(to_markdown(res, command))
     return 0
 

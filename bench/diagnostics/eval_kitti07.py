@@ -9,7 +9,7 @@ command-line tools (``evo_ape`` unaligned / SE(3) / Sim(3), ``evo_rpe`` per fram
 
 Example::
 
-    .venv/bin/python bench/eval_kitti07.py --gt ../shared/data/kitti_gt_poses_full/07.txt
+    .venv/bin/python -m bench.diagnostics.eval_kitti07 --gt ../shared/data/kitti_gt_poses_full/07.txt
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import platform
-import shlex
 import subprocess
 import sys
 import time
@@ -27,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.machine import command_line
 from metricslam.evaluation.kitti_metric import trajectory_distances
 from metricslam.geometry import sim3, so3
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 
@@ -133,7 +133,7 @@ def main() -> int:
     lines = [
         "# `metricslam eval` vs evo on KITTI 07 (ground truth vs a perturbed copy)",
         "",
-        f"Command: `{' '.join(shlex.quote(a) for a in [Path(sys.executable).name, 'bench/eval_kitti07.py'] + sys.argv[1:])}`  ",
+        f"Command: `{command_line('bench.diagnostics.eval_kitti07')}`  ",
         f"Machine: {machine}  ",
         f"Ground truth: `{rel(gt_path)}` ({ours['n_frames']} frames, {ours['path_length_m']:.1f} m).  ",
         f"Perturbation (seed {args.seed}): global scale ×{args.scale}, scale drift "
