@@ -4,8 +4,15 @@ Starts, in order, a Zenoh router (``python -m metricslam_slam.router``), the dep
 (``metricslam depth-service``) and the SLAM service (``metricslam slam-service``), waits until each
 is ready (router: TCP port open; depth: ``/readyz`` 200; SLAM: answers
 ``metricslam/_service/health``), prints where everything listens, then supervises: a child that
-dies is restarted after ``restart_delay_s`` (like compose's ``restart: unless-stopped``), so
-killing the depth service degrades the stack (no new scale factors) instead of ending it.
+dies is restarted (like compose's ``restart: unless-stopped``), so killing the depth service
+degrades the stack (no new scale factors) instead of ending it. A child that keeps crashing is
+restarted with exponential backoff (``restart_delay_s``, doubling up to ``restart_delay_max_s``;
+a child that ran ``stable_after_s`` starts again from ``restart_delay_s``).
+
+Before starting anything, every port the stack will bind (router, depth service) is checked:
+the readiness probes cannot tell our child from another process on the same port, so a taken
+port would read as "ready" and the real child would crash and restart forever. A taken port is
+refused with :class:`~metricslam.errors.ServiceError` naming it and the flag that moves it.
 SIGINT/SIGTERM stop the children in reverse order (SIGTERM, then SIGKILL after a grace period).
 Children are started through ``metricslam_slam.child`` (``PR_SET_PDEATHSIG``) so they never
 outlive a killed launcher.
@@ -13,6 +20,7 @@ outlive a killed launcher.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import signal
@@ -44,9 +52,15 @@ class Child:
     process: subprocess.Popen | None = None
     restarts: int = 0
     log_path: str | None = None
+    #: ports it binds: ``(host, port, socket type, how to pick another port)``
+    binds: list[tuple[str, int, int, str]] = field(default_factory=list)
+    crashes_in_a_row: int = 0
+    started_at_s: float = 0.0  # time.monotonic() of the latest start
+    restart_at_s: float | None = None  # when a scheduled restart is due
     _log_file: object = field(default=None, repr=False)
 
     def start(self) -> None:
+        self.started_at_s = time.monotonic()
         out = subprocess.DEVNULL
         if self.log_path:
             self._log_file = open(self.log_path, "ab")
@@ -79,6 +93,40 @@ def _port_open(host: str, port: int) -> bool:
             return True
     except OSError:
         return False
+
+
+def restart_delay_s(crashes_in_a_row: int, first_s: float, max_s: float) -> float:
+    """Backoff before restart number ``crashes_in_a_row`` (1, 2, …): ``first_s·2^(n−1)``,
+    at most ``max_s`` (1, 2, 4, 8, 16, 30, 30 … s with the defaults)."""
+    return min(max_s, first_s * 2.0 ** max(crashes_in_a_row - 1, 0))
+
+
+def port_problem(host: str, port: int, sock_type: int = socket.SOCK_STREAM) -> str | None:
+    """Why ``host:port`` cannot be bound now (``"is in use"``, or the OS error), or None if free.
+
+    Checks by binding (with ``SO_REUSEADDR``, as uvicorn and the router do, so ports in
+    TIME_WAIT count as free) and, for TCP, by connecting: something that accepts connections
+    there would answer our readiness probes.
+    """
+    bind_host = host.strip("[]")
+    probe_host = {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(bind_host, bind_host)
+    if sock_type == socket.SOCK_STREAM and _port_open(probe_host, port):
+        return "is in use"
+    family = socket.AF_INET6 if ":" in bind_host else socket.AF_INET
+    with socket.socket(family, sock_type) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((bind_host, port))
+        except OSError as exc:
+            return "is in use" if exc.errno == errno.EADDRINUSE else f"cannot be bound ({exc.strerror})"
+    return None
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free now (for suggestions in error messages and for tests)."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+        sock.bind((host.strip("[]"), 0))
+        return int(sock.getsockname()[1])
 
 
 def _http_ready(url: str) -> bool:
@@ -123,25 +171,32 @@ class Stack:
                  use_scale: bool = True, preset: str | None = None, session_kind: str = "pipeline",
                  log_dir: str | None = None, restart_delay_s: float = 1.0,
                  ready_timeout_s: float = 60.0, rerun: str | None = None,
-                 config_path: str | None = None) -> None:
+                 config_path: str | None = None, restart_delay_max_s: float = 30.0,
+                 stable_after_s: float = 30.0) -> None:
         check_endpoint(zenoh_endpoint)
         logging.getLogger("httpx").setLevel(logging.WARNING)
         self.zenoh_endpoint = zenoh_endpoint
         self.restart_delay_s = restart_delay_s
+        self.restart_delay_max_s = max(restart_delay_max_s, restart_delay_s)
+        self.stable_after_s = stable_after_s
         self.ready_timeout_s = ready_timeout_s
         self._stop = threading.Event()
-        _, _, hostport = zenoh_endpoint.partition("/")
-        zhost, _, zport = hostport.rpartition(":")
-        zhost = "127.0.0.1" if zhost in ("0.0.0.0", "[::]") else zhost
+        zproto, _, hostport = zenoh_endpoint.partition("/")
+        zbind, _, zport = hostport.rpartition(":")
+        zhost = "127.0.0.1" if zbind in ("0.0.0.0", "[::]") else zbind
         py = [sys.executable, "-m"]
         cli = py + ["metricslam.cli.main"]
         self.depth_url = None if depth_port is None else depth_url(depth_host, depth_port)
+        zsock = socket.SOCK_DGRAM if zproto in ("udp", "quic") else socket.SOCK_STREAM
         self.children = [Child("zenoh-router", py + ["metricslam_slam.router", "--listen", zenoh_endpoint],
-                               lambda: _port_open(zhost, int(zport)), zenoh_endpoint)]
+                               lambda: _port_open(zhost, int(zport)), zenoh_endpoint,
+                               binds=[(zbind, int(zport), zsock,
+                                       f"--zenoh-endpoint {zproto}/{zbind}:<PORT>")])]
         if self.depth_url is not None and use_scale:
             self.children.append(Child(
                 "depth-service", cli + ["depth-service", "--host", depth_host, "--port", str(depth_port)],
-                lambda: _http_ready(self.depth_url), self.depth_url))
+                lambda: _http_ready(self.depth_url), self.depth_url,
+                binds=[(depth_host, int(depth_port), socket.SOCK_STREAM, "--depth-port <PORT>")]))
         slam = cli + ["slam-service", "--zenoh-endpoint", zenoh_endpoint, "--session", session_kind,
                       "--depth-url", self.depth_url if (self.depth_url and use_scale) else "none"]
         if not use_scale:
@@ -158,18 +213,45 @@ class Stack:
             for child in self.children:
                 child.log_path = f"{log_dir}/{child.name}.log"
 
+    def check_ports(self) -> None:
+        """Refuse to start when a port the stack will bind is taken (or cannot be bound).
+
+        Raises:
+            ServiceError: naming each such port, its service, and the flag that moves it.
+        """
+        problems = []
+        claimed: dict[tuple[int, int], str] = {}
+        for child in self.children:
+            for host, port, sock_type, flag in child.binds:
+                why = port_problem(host, port, sock_type)
+                if why is None and (port, sock_type) in claimed:
+                    why = f"is also the {claimed[(port, sock_type)]}'s port"
+                claimed[(port, sock_type)] = child.name
+                if why is not None:
+                    held = ", or stop the process holding it (`ss -ltnp` shows it)" if why == "is in use" else ""
+                    problems.append(f"port {port} for the {child.name} ({host}:{port}) {why}: "
+                                    f"choose another with {flag.replace('<PORT>', str(free_port()))} "
+                                    f"(free right now){held}")
+        if problems:
+            raise ServiceError("cannot start the stack: " + "; ".join(problems))
+
     def _wait_ready(self, child: Child) -> None:
         deadline = time.monotonic() + self.ready_timeout_s
-        while not child.ready():
+        while True:
+            # alive first: a child that died must not pass for ready because something else answers
             if not child.alive():
                 raise ServiceError(f"{child.name} exited with code {child.process.returncode} while "
                                    f"starting{'; see ' + child.log_path if child.log_path else ''}")
+            if child.ready():
+                return
             if time.monotonic() > deadline or self._stop.is_set():
                 raise ServiceError(f"{child.name} not ready after {self.ready_timeout_s:.0f} s")
             time.sleep(0.2)
 
     def start(self, on_ready: Callable[[Child], None] = lambda c: None) -> None:
-        """Start every child in order and wait for each to be ready; stops all on failure."""
+        """Check the ports, then start every child in order and wait for each to be ready;
+        stops all on failure."""
+        self.check_ports()
         try:
             for child in self.children:
                 child.start()
@@ -180,17 +262,32 @@ class Stack:
             raise
 
     def supervise(self, on_restart: Callable[[Child], None] = lambda c: None, poll_s: float = 0.5) -> None:
-        """Restart dead children until :meth:`request_stop`."""
+        """Restart dead children until :meth:`request_stop`, with exponential backoff for a
+        child that keeps crashing (one child's backoff never delays another's restart)."""
         while not self._stop.wait(poll_s):
             for child in self.children:
-                if not child.alive() and not self._stop.is_set():
-                    log.warning("%s exited (code %s); restarting in %.1f s", child.name,
-                                child.process.returncode, self.restart_delay_s)
-                    if self._stop.wait(self.restart_delay_s):
-                        return
+                if self._stop.is_set():
+                    return
+                if child.alive():
+                    continue
+                now = time.monotonic()
+                if child.restart_at_s is None:
+                    self._schedule_restart(child, now)
+                elif now >= child.restart_at_s:
+                    child.restart_at_s = None
                     child.restarts += 1
                     child.start()
                     on_restart(child)
+
+    def _schedule_restart(self, child: Child, now: float) -> None:
+        ran_s = now - child.started_at_s
+        child.crashes_in_a_row = 1 if ran_s >= self.stable_after_s else child.crashes_in_a_row + 1
+        delay_s = restart_delay_s(child.crashes_in_a_row, self.restart_delay_s, self.restart_delay_max_s)
+        child.restart_at_s = now + delay_s
+        log.warning("%s exited with code %s after %.1f s (%d time(s) in a row); restarting in %.3g s "
+                    "(backoff doubles up to %.3g s)%s", child.name, child.process.returncode, ran_s,
+                    child.crashes_in_a_row, delay_s, self.restart_delay_max_s,
+                    f"; its output: {child.log_path}" if child.log_path else "")
 
     def request_stop(self) -> None:
         self._stop.set()

@@ -8,6 +8,7 @@ import time
 import zenoh
 
 from metricslam.datasets.base import Sequence
+from metricslam.datasets.frame_reader import FrameReader
 from metricslam.errors import ConfigError, ServiceError
 from metricslam_slam.client import FramePublisher, PoseRecorder, query_health
 
@@ -32,7 +33,8 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     ``max_in_flight > 0`` adds back-pressure: frame ``k`` goes out only once poses of all but
     ``max_in_flight`` of the frames published before it arrived; after one 10 s wait without
     progress back-pressure is switched off, so dropped frames or a dead service cannot stall the
-    replay. Returns the number of frames published.
+    replay. A frame whose image cannot be read is logged and published black, which the SLAM
+    service treats as an invalid frame. Returns the number of frames published.
     """
     from tqdm import tqdm
 
@@ -41,6 +43,7 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
         raise ConfigError(f"frame range [{start}, {stop}) is empty or outside 0..{len(seq) - 1}")
     if rate_hz < 0:
         raise ConfigError(f"rate must be >= 0 Hz, got {rate_hz}")
+    frames = FrameReader(seq)
     publisher = FramePublisher(session, camera_id, block=True)
     recorder = PoseRecorder(session, camera_id) if max_in_flight > 0 else None
     period_s = 0.0 if rate_hz == 0 else 1.0 / rate_hz
@@ -48,7 +51,7 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     try:
         for k, i in enumerate(tqdm(range(start, stop), desc=f"replay {camera_id}", unit="frame",
                                    disable=not progress)):
-            frame = seq[i]
+            frame = frames[i]
             if period_s:
                 delay = t_start + k * period_s - time.monotonic()
                 if delay > 0:

@@ -7,10 +7,15 @@ Example::
     metricslam run SEQ --vo-only --out est.txt        # local VO alone, no global graph
     metricslam run SEQ --deterministic --out est.txt  # no worker threads: reproducible
 
-Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame. ``--json`` writes
-the run statistics (:meth:`SlamPipeline.stats`: counters, ms per stage, back end) plus the scale
-estimate over time (:meth:`SlamPipeline.scale_history`, units in
-:mod:`metricslam.slam.scale_history`):
+Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame (``--format tum``:
+one ``t tx ty tz qx qy qz qw`` line per frame that has a pose). A frame that cannot be read
+(missing, truncated, corrupt, wrong size) is logged and processed as an invalid frame
+(:class:`~metricslam.datasets.frame_reader.FrameReader`); frames without a pose of their own
+are interpolated or marked (:meth:`SlamPipeline.trajectory`; docs/usage.md says what each output
+format does with them). ``--json`` writes the run statistics (:meth:`SlamPipeline.stats`:
+counters, ms per stage, back end), the frames that were unreadable, interpolated or left without
+a pose (:func:`pose_gap_stats`), plus the scale estimate over time
+(:meth:`SlamPipeline.scale_history`, units in :mod:`metricslam.slam.scale_history`):
 
 * ``scale_history`` — one dict per marginalized keyframe: ``frame_index``, ``t_ns``;
   ``scale_live``, the running product of the warp scales applied to the VO until then (world
@@ -41,7 +46,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "make the trajectory metric; --no-scale is the geometric baseline.",
     )
     p.add_argument("seq_dir", metavar="SEQ_DIR", help="sequence folder")
-    p.add_argument("--out", required=True, metavar="EST.txt", help="KITTI pose file to write")
+    p.add_argument("--out", required=True, metavar="EST.txt", help="pose file to write")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
+                   help="kitti (default): one line per input frame, a placeholder for a frame "
+                        "without a pose (listed in --json); tum: timestamped lines, frames without "
+                        "a pose left out")
     p.add_argument("--json", metavar="STATS.json", help="write run statistics as JSON")
     p.add_argument("--no-scale", action="store_true",
                    help="no learned scale factors (scale fixed by the monocular initialization)")
@@ -109,9 +118,10 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from metricslam.datasets import open_sequence
+    from metricslam.datasets.frame_reader import FrameReader
     from metricslam.errors import ConfigError
     from metricslam.slam.session_builder import build_session, preset_for
-    from metricslam.trajectory.io import write_kitti_poses
+    from metricslam.trajectory.io import write_kitti_poses, write_tum
 
     config = config_from_args(args)
     seq = open_sequence(args.seq_dir)
@@ -119,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
+    frames = FrameReader(seq)
     pipeline = build_session(seq.camera, config, default_preset=preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              pipeline.vo.config.model_dump())
@@ -126,13 +137,19 @@ def run(args: argparse.Namespace) -> int:
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",
                       disable=args.no_progress):
-            pipeline.process(seq[i])
+            pipeline.process(frames[i])
     finally:
         pipeline.close()
     wall_s = time.perf_counter() - t0
     traj = pipeline.trajectory()
-    write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]))
+    if args.format == "tum":
+        kept = [e for e in traj if e.pose_valid]
+        write_tum(args.out, np.array([e.t_ns for e in kept], dtype=np.int64),
+                  np.array([e.T_world_cam for e in kept]).reshape(-1, 4, 4))
+    else:
+        write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]))
     stats = pipeline.stats()
+    stats.update(pose_gap_stats(traj, frames.unreadable))
     stats.update(pipeline.scale_history())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
                   "fps": n / wall_s if wall_s > 0 else None, "mode": config.mode,
@@ -140,8 +157,26 @@ def run(args: argparse.Namespace) -> int:
                   "config": config.model_dump(mode="json")})
     print(f"{n} frames, {stats['keyframes']} keyframes, {stats['tracking_losses']} tracking "
           f"losses, {stats['fps']:.1f} frames/s (including image loading) -> {args.out}")
+    if stats["frames_unreadable"] or stats["interpolated"] or stats["pose_invalid"]:
+        print(f"{stats['frames_unreadable']} unreadable frames, {stats['interpolated']} poses "
+              f"interpolated, {stats['pose_invalid']} frames without a pose (frame lists in --json)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(stats, indent=2, default=float) + "\n")
     return 0
+
+
+def pose_gap_stats(trajectory: list, unreadable: list[int]) -> dict:
+    """JSON-ready counts and frame indices of the frames that needed help.
+
+    ``frames_unreadable`` / ``unreadable_frame_indices``: image files that could not be read;
+    ``interpolated`` / ``interpolated_frame_indices``: poses interpolated between neighbours;
+    ``pose_invalid`` / ``pose_invalid_frame_indices``: frames left without a pose (a
+    placeholder in KITTI files, left out of TUM files).
+    """
+    interp = [int(e.frame_index) for e in trajectory if e.interpolated]
+    invalid = [int(e.frame_index) for e in trajectory if not e.pose_valid]
+    return {"frames_unreadable": len(unreadable), "unreadable_frame_indices": sorted(unreadable),
+            "interpolated": len(interp), "interpolated_frame_indices": interp,
+            "pose_invalid": len(invalid), "pose_invalid_frame_indices": invalid}

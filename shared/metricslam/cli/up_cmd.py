@@ -5,7 +5,9 @@ Example::
     metricslam up --zenoh-endpoint tcp/127.0.0.1:7447 --depth-port 8100
     metricslam replay SEQ --zenoh-endpoint tcp/127.0.0.1:7447 --rate 10     # in another shell
 
-Children are supervised (restarted if they die); Ctrl-C / SIGTERM stops them all.
+Every port the stack binds is checked first: a taken one is refused (exit code 1) with a message
+naming it and the flag that moves it. Children are supervised (restarted if they die, with
+exponential backoff while they keep crashing); Ctrl-C / SIGTERM stops them all.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "up", help="start router + depth service + SLAM service locally",
         description="Starts a Zenoh router, the depth service and the SLAM service as child "
         "processes, waits until each is ready, prints the endpoints, restarts a child that dies, "
-        "and stops everything on SIGINT/SIGTERM.")
+        "and stops everything on SIGINT/SIGTERM. Refuses to start when a port it would bind "
+        "(router, depth service) is taken.")
     p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP",
                    help=f"router listen endpoint (default {DEFAULT_ZENOH_ENDPOINT})")
     p.add_argument("--depth-port", type=int, default=DEFAULT_DEPTH_PORT, metavar="P",
@@ -34,7 +37,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    choices=("pipeline", "identity"), help="SLAM session kind (identity: transport only)")
     p.add_argument("--log-dir", metavar="DIR", help="write each child's output to DIR/<name>.log")
     p.add_argument("--restart-delay", type=float, default=1.0, metavar="S",
-                   help="seconds before restarting a child that died")
+                   help="seconds before restarting a child that died; doubles while it keeps "
+                        "crashing (default 1)")
+    p.add_argument("--restart-delay-max", type=float, default=30.0, metavar="S",
+                   help="longest wait between restarts of a crashing child (default 30)")
     p.add_argument("--rerun", metavar="TARGET",
                    help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
     p.set_defaults(func=run)
@@ -52,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     stack = Stack(args.zenoh_endpoint, depth_port=args.depth_port, depth_host=args.depth_host,
                   use_scale=not args.no_scale, preset=args.preset, session_kind=args.session_kind,
                   log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun,
-                  config_path=args.config)
+                  config_path=args.config, restart_delay_max_s=args.restart_delay_max)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 

@@ -93,24 +93,42 @@ class SlamPipeline:
         return est
 
     def trajectory(self) -> list[PoseEstimate]:
-        """Best pose of every processed frame, in frame order (see module docstring)."""
+        """Best pose of every processed frame, in frame order (see module docstring).
+
+        A frame the VO anchored to a keyframe has a pose of its own. One without (invalid or
+        unreadable input, a tracking loss, an initialization attempt given up) would otherwise
+        keep the VO's pose of the moment, in a VO frame that later warps left behind; instead
+        it is interpolated at its ``t_ns`` between the nearest frames before and after it that
+        have a pose (``interpolated=True``), when both poses are in one world frame: the same
+        segment, or both from the global graph (which links each new segment to the previous
+        one). Otherwise it gets a placeholder and ``pose_valid=False``: before the first frame
+        with a pose, the VO's pose of the moment (the VO world's origin, where the first
+        keyframe sits); after the last one, that frame's pose; between two unrelated segments,
+        the neighbour in its own segment.
+        """
         self._collect_anchors()
         kf_vo = self.vo.keyframe_poses()
         kf_global = self.backend.optimized_keyframe_poses() if self.backend is not None else {}
         out = []
+        own: list[bool] = []  # has a pose of its own (an anchor)
+        in_graph: list[bool] = []  # ... and it comes from the global graph
         with self._lock:
             for est in self._estimates:
                 anchor = self._anchors.get(est.frame_index)
                 T = est.T_world_cam
+                from_graph = False
                 if anchor is not None:
                     kf_index, T_kf_cam = anchor
                     if kf_index in kf_global:
                         T = _compose_sim3_rigid(kf_global[kf_index], T_kf_cam)
+                        from_graph = True
                     elif kf_index in kf_vo:
                         T = kf_vo[kf_index] @ T_kf_cam
                 out.append(PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
                                         est.segment_id, est.scale_established))
-        return out
+                own.append(anchor is not None)
+                in_graph.append(from_graph)
+        return _fill_pose_gaps(out, own, in_graph)
 
     def stats(self) -> dict:
         """Frames, keyframes, tracking losses and mean ms per frame of each stage."""
@@ -191,3 +209,53 @@ def _compose_sim3_rigid(S_world_kf: np.ndarray, T_kf_cam: np.ndarray) -> np.ndar
     out[:3, :3] = R @ T_kf_cam[:3, :3]
     out[:3, 3] = s * R @ T_kf_cam[:3, 3] + t
     return out
+
+
+def _fill_pose_gaps(poses: list[PoseEstimate], own: list[bool],
+                    in_graph: list[bool]) -> list[PoseEstimate]:
+    """Give every frame without a pose of its own (``own[k]`` False) an interpolated pose, or
+    a placeholder marked ``pose_valid=False`` (see :meth:`SlamPipeline.trajectory`). Frames with
+    a pose of their own are returned as they are."""
+    n = len(poses)
+    if all(own):
+        return poses
+    left: list[int | None] = [None] * n  # nearest frame at or before k with a pose of its own
+    right: list[int | None] = [None] * n  # ... at or after k
+    for k in range(n):
+        left[k] = k if own[k] else (left[k - 1] if k else None)
+    for k in reversed(range(n)):
+        right[k] = k if own[k] else (right[k + 1] if k + 1 < n else None)
+    out = list(poses)
+    for k, est in enumerate(poses):
+        if own[k]:
+            continue
+        a, b = left[k], right[k]
+        interpolated, valid = False, True
+        if a is not None and b is not None and (
+                poses[a].segment_id == poses[b].segment_id or (in_graph[a] and in_graph[b])):
+            T, interpolated = _interpolate_pose(poses[a], poses[b], est.t_ns, k - a, b - a), True
+        elif a is None:  # before the first pose the VO has no map: it sits at its world origin
+            T, valid = est.T_world_cam, False
+        else:  # the side in this frame's own segment, else the earlier one
+            later_is_own = (b is not None and poses[b].segment_id == est.segment_id
+                            and poses[a].segment_id != est.segment_id)
+            T, valid = poses[b if later_is_own else a].T_world_cam.copy(), False
+        out[k] = PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
+                              est.segment_id, est.scale_established, interpolated=interpolated,
+                              pose_valid=valid)
+    return out
+
+
+def _interpolate_pose(a: PoseEstimate, b: PoseEstimate, t_ns: int, steps_from_a: int,
+                      steps_a_to_b: int) -> np.ndarray:
+    """``T_world_cam`` at ``t_ns`` between ``a`` and ``b``: position linear, rotation along the
+    geodesic (``R_a·Exp(α·Log(R_aᵀ·R_b))``), α from the timestamps (from frame counts if the
+    timestamps do not increase)."""
+    span_ns = b.t_ns - a.t_ns
+    alpha = (t_ns - a.t_ns) / span_ns if span_ns > 0 else steps_from_a / steps_a_to_b
+    alpha = min(max(float(alpha), 0.0), 1.0)
+    R_a, R_b = so3.project_to_so3(a.T_world_cam[:3, :3]), so3.project_to_so3(b.T_world_cam[:3, :3])
+    T = np.eye(4)
+    T[:3, :3] = R_a @ so3.exp(alpha * so3.log(R_a.T @ R_b))
+    T[:3, 3] = (1.0 - alpha) * a.T_world_cam[:3, 3] + alpha * b.T_world_cam[:3, 3]
+    return T

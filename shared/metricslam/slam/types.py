@@ -22,7 +22,7 @@ class TrackingState(str, enum.Enum):
     INITIALIZING = "initializing"  # no map yet (waiting for parallax)
     TRACKING = "tracking"
     LOST = "lost"  # this frame could not be tracked; a new segment starts after re-init
-    INVALID_FRAME = "invalid_frame"  # corrupt/blank input; pose is the last known one
+    INVALID_FRAME = "invalid_frame"  # corrupt/blank/unreadable input; live pose: the last known one
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,12 @@ class PoseEstimate:
         segment_id: increments after each tracking loss (each segment has its own world frame
             until something relates them).
         scale_established: True when learned scale factors have fixed the metric scale.
+        interpolated: the frame had no pose of its own (invalid input, tracking loss, a given-up
+            initialization) and ``T_world_cam`` was interpolated at ``t_ns`` between the nearest
+            frames before and after it that have one (only :meth:`SlamSession.trajectory` sets it).
+        pose_valid: False when the frame has no pose of its own and none could be interpolated
+            (no such frame on one side, or the two sides in unrelated world frames);
+            ``T_world_cam`` is then a placeholder (:meth:`SlamPipeline.trajectory` says which).
     """
 
     frame_index: int
@@ -47,6 +53,8 @@ class PoseEstimate:
     is_keyframe: bool = False
     segment_id: int = 0
     scale_established: bool = False
+    interpolated: bool = False
+    pose_valid: bool = True
 
 
 @dataclass(frozen=True)
