@@ -68,14 +68,16 @@ def _lidar_at(depth_png: Path, uv_px: np.ndarray) -> np.ndarray:
     return disparity_at(d, uv_px)  # same 5x5 valid median, on depth instead of disparity
 
 
-def run_and_record(seq_dir: str | Path, model_path: str | Path | None) -> tuple[list, dict, dict]:
-    """Run the deterministic system on ``seq_dir``; return its ScaleMeasured events, the
-    optimized keyframe poses (frame -> (4, 4) Sim(3)) and the run's stats."""
+def run_and_record(seq_dir: str | Path, model_path: str | Path | None,
+                   depth_source: object | None = None) -> tuple[list, dict, dict]:
+    """Run the deterministic system on ``seq_dir`` (depth from ``depth_source``, else the ONNX
+    model ``model_path``, else the shipped one); return its ScaleMeasured events, the optimized
+    keyframe poses (frame -> (4, 4) Sim(3)) and the run's stats."""
     seq = open_sequence(seq_dir)
     overrides = {"vo": {"preset": preset_for(seq_dir)}, "deterministic": True}
     if model_path is not None:
         overrides["depth"] = {"model_path": str(model_path)}
-    session = build_session(seq.camera, SystemConfig(**overrides))
+    session = build_session(seq.camera, SystemConfig(**overrides), depth_source=depth_source)
     events: list[ScaleMeasured] = []
     session.backend.events.subscribe(events.append, ScaleMeasured)
     for i in range(len(seq)):
@@ -146,12 +148,15 @@ def analyse(per_kf: list[dict], poses: dict, ref: str, sigma_log: float, huber_k
             "optimized_over_true_median": _median(opt), "per_keyframe": kf_rows}
 
 
-def evaluate(seq_dirs: list[str], model_path: str | None) -> dict:
+def evaluate(seq_dirs: list[str], model_path: str | None, depth_source: object | None = None) -> dict:
+    """The module docstring's report for each sequence folder (JSON-ready)."""
     config = SystemConfig().graph_config()
     out = {"model": str(model_path or os.path.relpath(DEFAULT_MODEL_PATH)), "sequences": {}}
+    if depth_source is not None:
+        out["model"] = type(depth_source).__name__
     for seq_dir in seq_dirs:
         t0 = time.perf_counter()
-        events, poses, stats = run_and_record(seq_dir, model_path)
+        events, poses, stats = run_and_record(seq_dir, model_path, depth_source)
         per_kf = reference_depths(seq_dir, events)
         res = {"seq_dir": seq_dir, "keyframe_events": len(events), "wall_s": None}
         for ref in ("stereo", "lidar"):
