@@ -125,6 +125,60 @@ def slam_rule_markdown(report: dict) -> str:
                f"{report['default']['score']:.1f} %.\n" if report["winner"] else ""))
 
 
+def score_v3m_rule(model_path: Path, data: Path, label: str, workdir: Path) -> dict:
+    """The v3m rule (``training/configs/experiments/train_depth_v3m.yaml``): SLAM scale error on
+    every validation drive (score = the largest); what the scale factors consume
+    (``bench/scale_measurements.py``, stereo reference) is reported beside it."""
+    from bench.scale_measurements import evaluate as consumed
+
+    slam = slam_check(model_path, data, workdir)
+    seen = consumed([str(data / s) for s, _ in VALIDATION], str(model_path))
+    return {"label": label, "model": str(model_path), "slam": slam,
+            "score": max(v["scale_error_pct"] for v in slam.values()),
+            "consumed": {name: {"measured_over_true": r["stereo"]["measured_over_true_median"],
+                                "bins": {b: v["net_over_ref"] for b, v in r["stereo"]["bins"].items()},
+                                "fraction": {b: v["fraction"] for b, v in r["stereo"]["bins"].items()}}
+                         for name, r in seen["sequences"].items()}}
+
+
+def apply_max_rule(default: dict, candidates: list[dict], max_pct: float = 10.0) -> dict | None:
+    """Eligible: every validation drive's SLAM scale error <= ``max_pct``; the lowest score wins."""
+    for c in candidates:
+        c["eligible"] = all(v["scale_error_pct"] <= max_pct for v in c["slam"].values())
+    eligible = [c for c in candidates if c["eligible"]]
+    return min(eligible, key=lambda c: c["score"]) if eligible else None
+
+
+def v3m_markdown(report: dict) -> str:
+    names = list(report["default"]["slam"])
+    bins = ("10-20", "20-40", "40-60", ">60")
+    head = ("| model | " + " | ".join(f"{n} scale error" for n in names)
+            + " | " + " | ".join(f"{n[-4:]} measured/true" for n in names)
+            + " | " + " | ".join(f"{n[-4:]} net/ref {b} m" for n in names for b in bins) + " | eligible |")
+    lines = [f"# Depth v3m selection (rule in training/configs/experiments/train_depth_v3m.yaml)\n\n"
+             f"Command: `{report['command']}`  \nMachine: {report['machine']}\n",
+             "Score: the larger `metricslam run --deterministic` scale error of the two validation drives. "
+             "measured/true and net/ref: what the SLAM's scale factors consume (bench/scale_measurements.py, "
+             "stereo reference; median over keyframes, and per range bin of the landmarks' depth); reported, "
+             "not used by the rule.\n", head, "|" + " --- |" * (head.count("|") - 1)]
+
+    def row(r: dict, eligible: str) -> str:
+        errs = " | ".join(f"{r['slam'][n]['scale_error_pct']:.1f} % (×{r['slam'][n]['scale_ratio']:.3f})" for n in names)
+        meas = " | ".join(f"×{r['consumed'][n]['measured_over_true']:.3f}" for n in names)
+        per = " | ".join("–" if r["consumed"][n]["bins"][b] is None else f"×{r['consumed'][n]['bins'][b]:.2f}"
+                         for n in names for b in bins)
+        return f"| {r['label']} | {errs} | {meas} | {per} | {eligible} |"
+
+    lines.append(row(report["default"], "—"))
+    for c in report["candidates"]:
+        lines.append(row(c, "yes" if c["eligible"] else "no"))
+    w = report["winner"]
+    lines += ["", f"Winner by the rule: **{w['label'] if w else 'none eligible'}**"
+              + (f" (score {w['score']:.1f} % vs the shipped model's {report['default']['score']:.1f} %; "
+                 f"{'beats it' if report['replaces_default'] else 'does NOT beat it'})" if w else "") + "."]
+    return "\n".join(lines) + "\n"
+
+
 def markdown(report: dict) -> str:
     seq_names = list(report["default"]["bins"])
     bins = ("5-10", "10-20", "20-40", "40-60")
@@ -187,14 +241,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--export-dir", default="runs/candidates")
     p.add_argument("--no-raw", action="store_true", help="skip the raw-weight rows")
     p.add_argument("--slam", action="store_true", help="also run SLAM with every EMA candidate (reported only)")
-    p.add_argument("--rule", choices=("corners", "slam"), default="corners",
-                   help="corners: the v3 rule (worst corner bin); slam: the v3-ft rule (SLAM scale error)")
+    p.add_argument("--rule", choices=("corners", "slam", "v3m"), default="corners",
+                   help="corners: the v3 rule (worst corner bin); slam: the v3-ft rule (SLAM scale error); "
+                        "v3m: SLAM scale error, every drive <= 10 %%")
     p.add_argument("--jobs", type=int, default=2, help="candidates scored in parallel (one thread each)")
     p.add_argument("--out", required=True, metavar="PREFIX")
     args = p.parse_args(argv)
     data, export_dir = Path(args.data), Path(args.export_dir)
     export_dir.mkdir(parents=True, exist_ok=True)
-    if args.rule == "slam":
+    if args.rule in ("slam", "v3m"):
         return main_slam_rule(args, argv, data, export_dir)
     report = {"command": command_line("bench.select_depth", argv),
               "machine": describe(), "default": score(DEFAULT_MODEL_PATH, data, "default (shipped)"),
@@ -235,13 +290,17 @@ def main_slam_rule(args, argv: list[str], data: Path, export_dir: Path) -> int:
     tasks = [(run, step) for run in map(Path, args.run) for step in args.steps if (run / f"step_{step:06d}.pt").is_file()]
     models = [("default (shipped)", DEFAULT_MODEL_PATH)] + [
         (f"{run.name}@{step}", export(run, step, "ema", export_dir)) for run, step in tasks]
+    scorer = score_v3m_rule if args.rule == "v3m" else score_slam_rule
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-        rows = pool.starmap(score_slam_rule, [(m, data, label, work) for label, m in models])
-    report = {"command": command_line("bench.select_depth", argv),
+        rows = pool.starmap(scorer, [(m, data, label, work) for label, m in models])
+    report = {"command": command_line("bench.select_depth", argv), "rule": args.rule,
               "machine": describe(), "default": rows[0], "candidates": rows[1:]}
-    report["winner"] = apply_slam_rule(report["default"], report["candidates"])
+    if args.rule == "v3m":
+        report["winner"] = apply_max_rule(report["default"], report["candidates"])
+    else:
+        report["winner"] = apply_slam_rule(report["default"], report["candidates"])
     report["replaces_default"] = bool(report["winner"] and report["winner"]["score"] < report["default"]["score"])
-    text = slam_rule_markdown(report)
+    text = v3m_markdown(report) if args.rule == "v3m" else slam_rule_markdown(report)
     print(text)
     write_results(args.out, report, text)
     return 0
