@@ -10,6 +10,9 @@ Policy (stated once, here):
 
 A slot is released when its job *finishes* (not when its request goes away), so an abandoned
 request can never let more than ``max_concurrency`` jobs pile onto the CPU.
+
+In front of the gate, :class:`InflightLimit` caps the HTTP requests alive at once (bodies being
+received included), exempting the liveness/readiness probes.
 """
 
 from __future__ import annotations
@@ -20,7 +23,9 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
-from .errors import RequestProblem
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from .errors import RequestProblem, problem_response
 from .metrics import ServiceMetrics
 
 T = TypeVar("T")
@@ -105,3 +110,52 @@ class AdmissionGate:
     def shutdown(self) -> None:
         """Stop the worker threads after the jobs already submitted."""
         self._executor.shutdown(wait=True, cancel_futures=True)
+
+
+class InflightLimit:
+    """Pure ASGI middleware: at most ``max_requests`` HTTP requests received or served at once.
+
+    Counts requests, not connections — an idle keep-alive connection costs nothing here (idle
+    connections are :mod:`metricslam_depth.connections`' business). Liveness and readiness
+    probes (``exempt_paths``) are never refused: they are answered from memory in microseconds,
+    and their number is bounded by the connection cap anyway. Beyond the limit: 503
+    ``busy`` with ``Retry-After`` and ``Connection: close`` (the body is never read).
+
+    Args:
+        app: the wrapped ASGI app.
+        max_requests: requests allowed at once.
+        exempt_paths: paths never refused (``/healthz``, ``/readyz``).
+        retry_after_s: ``Retry-After`` on the 503.
+        metrics: ``depth_rejected_total{reason="busy"}``.
+    """
+
+    def __init__(
+        self, app: ASGIApp, max_requests: int, exempt_paths: frozenset[str], retry_after_s: int,
+        metrics: ServiceMetrics,
+    ) -> None:
+        self.app = app
+        self._max_requests = max_requests
+        self._exempt_paths = exempt_paths
+        self._headers = {"Retry-After": str(retry_after_s), "Connection": "close"}
+        self._metrics = metrics
+        self._inflight = 0
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope.get("path") in self._exempt_paths:
+            await self.app(scope, receive, send)
+            return
+        if self._inflight >= self._max_requests:
+            self._metrics.rejected.labels("busy").inc()
+            response = problem_response(
+                503, "busy", "Service busy",
+                f"{self._inflight} requests are already being received or served (limit "
+                f"{self._max_requests}); retry after the Retry-After delay.",
+                scope.get("path", ""), headers=self._headers,
+            )
+            await response(scope, receive, send)
+            return
+        self._inflight += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self._inflight -= 1

@@ -3,7 +3,8 @@
 Life cycle: the lifespan starts loading the model on a background thread and the server
 answers at once — ``/healthz`` is 200 from the start, ``/readyz`` and the inference endpoints
 answer 503 (``Retry-After``) until the model is loaded, then 200. A model that fails to load
-keeps the service unready, and ``/readyz`` says why.
+keeps the service unready; ``/readyz`` says so, the server log says why (paths and exception
+text stay in the log, see :mod:`metricslam_depth.disclosure`).
 
 Endpoints are in :mod:`metricslam_depth.routes`; error shapes in :mod:`metricslam_depth.errors`.
 """
@@ -21,7 +22,9 @@ from fastapi import FastAPI
 
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel
 
-from .admission import AdmissionGate
+from .admission import AdmissionGate, InflightLimit
+from .bodies import BodyBudget
+from .disclosure import MODEL_LOAD_FAILED
 from .errors import install_error_handlers
 from .metrics import MetricsMiddleware, ServiceMetrics
 from .pipeline import DepthPipeline
@@ -31,6 +34,8 @@ from .settings import DepthServiceSettings
 log = logging.getLogger(__name__)
 
 API_VERSION = "1.0.0"
+#: liveness / readiness probes: never refused by the in-flight request limit
+PROBE_PATHS = frozenset({"/healthz", "/readyz"})
 
 
 @dataclass
@@ -38,12 +43,13 @@ class ServiceState:
     """Mutable state of one app, held in ``app.state.depth``.
 
     ``pipeline`` is set exactly once, by the loader thread, when the model is ready;
-    ``load_error`` is set instead if loading failed.
+    ``load_error`` (the public sentence, never the exception) is set instead if loading failed.
     """
 
     settings: DepthServiceSettings
     metrics: ServiceMetrics
     gate: AdmissionGate | None = None
+    budget: BodyBudget | None = None
     pipeline: DepthPipeline | None = None
     load_error: str | None = None
 
@@ -52,9 +58,9 @@ def _load_model(state: ServiceState) -> None:
     s = state.settings
     try:
         model = DepthModel.load(s.model_path, threads=s.threads)
-    except Exception as exc:  # noqa: BLE001 - any failure must leave the service unready, not dead
-        state.load_error = str(exc)
-        log.error("depth model failed to load: %s", exc)
+    except Exception:  # noqa: BLE001 - any failure must leave the service unready, not dead
+        log.exception("depth model %s failed to load", s.model_path or DEFAULT_MODEL_PATH)
+        state.load_error = MODEL_LOAD_FAILED
         return
     c = model.contract
     log.info(
@@ -63,7 +69,7 @@ def _load_model(state: ServiceState) -> None:
         c.model_id, c.weights_precision, s.model_path or DEFAULT_MODEL_PATH, c.input_width, c.input_height,
         c.output_width, c.output_height, c.baseline_m, c.params, c.training_commit,
     )
-    state.pipeline = DepthPipeline(model, s.max_image_pixels, state.metrics)
+    state.pipeline = DepthPipeline(model, s.max_image_pixels, s.max_decoded_bytes, state.metrics)
     state.metrics.model_loaded.set(1)
 
 
@@ -83,6 +89,9 @@ def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
         state.gate = AdmissionGate(
             settings.max_concurrency, settings.max_queue, settings.request_timeout_s,
             settings.retry_after_s, metrics,
+        )
+        state.budget = BodyBudget(
+            settings.max_buffered_body_bytes, settings.body_budget_wait_s, settings.retry_after_s, metrics
         )
         loader = threading.Thread(target=_load_model, args=(state,), name="depth-model-load", daemon=True)
         loader.start()
@@ -107,5 +116,10 @@ def create_app(settings: DepthServiceSettings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(router)
     known = frozenset(getattr(r, "path", "") for r in [*app.routes, *router.routes]) - {""}
+    # outermost last: metrics see every answer, the in-flight 503s included
+    app.add_middleware(
+        InflightLimit, max_requests=settings.max_inflight_requests, exempt_paths=PROBE_PATHS,
+        retry_after_s=settings.retry_after_s, metrics=metrics,
+    )
     app.add_middleware(MetricsMiddleware, metrics=metrics, known_paths=known)
     return app

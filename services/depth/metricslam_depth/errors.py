@@ -8,7 +8,8 @@ Body (``Content-Type: application/problem+json``)::
 
 Handlers here turn :class:`RequestProblem`, FastAPI's validation errors, Starlette's HTTP errors
 and, as a last resort, any other exception into that shape, so no endpoint ever answers with an
-HTML page or a bare traceback.
+HTML page or a bare traceback. Bodies never carry file paths or exception names/text (those are
+logged); see :mod:`metricslam_depth.disclosure`.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from metricslam.errors import MetricSlamError
 
-from .schemas import PROBLEM_MEDIA_TYPE, Problem
+from .schemas import FX_MAX_PX, FX_MIN_PX, PROBLEM_MEDIA_TYPE, Problem
 
 log = logging.getLogger(__name__)
 
@@ -103,8 +104,8 @@ def _validation_errors(exc: RequestValidationError) -> tuple[str, list[dict]]:
         items.append({"loc": loc, "msg": msg})
         parts.append(f"{loc}: {msg}")
     hint = (
-        " Pass the camera's focal length in pixels as a finite positive number, "
-        "e.g. ?fx=718.856."
+        f" fx is the camera's focal length in pixels at the uploaded image's resolution: a finite "
+        f"number with {FX_MIN_PX:g} <= fx <= {FX_MAX_PX:g} (e.g. ?fx=718.856 for KITTI 00-02)."
         if any("fx" in i["loc"] for i in items)
         else ""
     )
@@ -142,10 +143,11 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        # the exception (type, text, traceback) goes to the log only, never to the caller
         log.exception("unexpected error on %s %s", request.method, request.url.path)
         return problem_response(
             500, "internal", "Internal server error",
-            f"the server failed unexpectedly ({type(exc).__name__}); this is a bug in the depth "
-            "service, please report it with the request that caused it.",
+            "the server failed unexpectedly; this is a bug in the depth service, please report it "
+            "with the request that caused it and the time (the server log has the details).",
             request.url.path,
         )

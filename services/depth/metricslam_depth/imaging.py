@@ -1,7 +1,8 @@
 """Decode uploaded PNG/JPEG bytes into uint8 arrays, refusing anything odd with a clear reason.
 
-The image size is read from the file header *before* decoding, so a tiny file that claims to
-be 100000x100000 pixels (a decompression bomb) is refused without allocating it.
+The image size, channels and bit depth are read from the file header (PNG IHDR, JPEG SOF)
+*before* decoding, so a tiny file that claims to be 100000x100000 pixels, or 4096x4096 16-bit
+RGBA (a decompression bomb), is refused without allocating or touching its pixels.
 
 Returned images are ``(H, W)`` uint8 gray, the network's input kind: OpenCV converts colour
 to gray with the right channel weights, drops alpha and scales
@@ -11,6 +12,7 @@ to gray with the right channel weights, drops alpha and scales
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -45,15 +47,50 @@ def _undecodable(detail: str) -> RequestProblem:
     return RequestProblem(400, "undecodable-image", "Image could not be decoded", detail)
 
 
-def _png_size(data: bytes) -> tuple[int, int]:
-    # IHDR is always the first chunk: length(4) 'IHDR'(4) width(4) height(4)
-    if len(data) < 24 or data[12:16] != b"IHDR":
+@dataclass(frozen=True)
+class ImageHeader:
+    """What a PNG/JPEG header declares, read without decoding a pixel.
+
+    Attributes:
+        width_px / height_px: image size.
+        channels: samples per pixel the decoder produces (gray 1, gray+alpha 2, RGB and
+            palette 3, RGBA / CMYK 4).
+        bytes_per_sample: 1 for up to 8 bits per sample, 2 above (16-bit PNG, 12-bit JPEG).
+    """
+
+    width_px: int
+    height_px: int
+    channels: int
+    bytes_per_sample: int
+
+    @property
+    def pixels(self) -> int:
+        return self.width_px * self.height_px
+
+    @property
+    def decoded_bytes(self) -> int:
+        """Size of the full decoded raster (what the decoder allocates and touches), bytes."""
+        return self.pixels * self.channels * self.bytes_per_sample
+
+
+# PNG colour type -> samples per pixel (palette images are expanded to RGB by the decoder)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+
+
+def _png_header(data: bytes) -> ImageHeader:
+    # IHDR is always the first chunk: length(4) 'IHDR'(4) width(4) height(4) depth(1) colour(1)
+    if len(data) < 26 or data[12:16] != b"IHDR":
         raise _undecodable("the PNG has no IHDR header; the file is truncated or corrupt.")
-    width, height = struct.unpack(">II", data[16:24])
-    return width, height
+    width, height, bit_depth, colour_type = struct.unpack(">IIBB", data[16:26])
+    if colour_type not in _PNG_CHANNELS or bit_depth not in (1, 2, 4, 8, 16):
+        raise _undecodable(
+            f"the PNG header declares colour type {colour_type} with bit depth {bit_depth}, which "
+            "is not valid PNG; re-encode the image."
+        )
+    return ImageHeader(width, height, _PNG_CHANNELS[colour_type], 2 if bit_depth > 8 else 1)
 
 
-def _jpeg_size(data: bytes) -> tuple[int, int]:
+def _jpeg_header(data: bytes) -> ImageHeader:
     pos = 2
     while pos + 4 <= len(data):
         if data[pos] != 0xFF:
@@ -67,18 +104,21 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
             continue
         (seg_len,) = struct.unpack(">H", data[pos + 2 : pos + 4])
         if marker in _SOF_MARKERS:
-            if pos + 9 > len(data):
+            # length(2) precision(1) height(2) width(2) components(1)
+            if pos + 10 > len(data):
                 break
-            height, width = struct.unpack(">HH", data[pos + 5 : pos + 9])
-            return width, height
+            precision, height, width, components = struct.unpack(">BHHB", data[pos + 4 : pos + 10])
+            if components == 0:
+                break
+            return ImageHeader(width, height, components, 2 if precision > 8 else 1)
         if seg_len < 2:
             break
         pos += 2 + seg_len
     raise _undecodable("no JPEG frame header found; the file is truncated or corrupt.")
 
 
-def image_size(data: bytes, media_type: str) -> tuple[int, int]:
-    """(width_px, height_px) from the header of PNG/JPEG ``data`` without decoding pixels.
+def read_header(data: bytes, media_type: str) -> ImageHeader:
+    """The :class:`ImageHeader` of PNG/JPEG ``data`` (IHDR / SOF), without decoding pixels.
 
     Raises:
         RequestProblem: 400 when ``data`` is not a file of the declared ``media_type``.
@@ -89,38 +129,75 @@ def image_size(data: bytes, media_type: str) -> tuple[int, int]:
                 "the body does not start with the PNG signature although Content-Type is "
                 "image/png; send the PNG file's bytes unchanged (or fix the Content-Type)."
             )
-        return _png_size(data)
+        return _png_header(data)
     if not data.startswith(JPEG_SIGNATURE):
         raise _undecodable(
             "the body does not start with a JPEG SOI marker although Content-Type is "
             "image/jpeg; send the JPEG file's bytes unchanged (or fix the Content-Type)."
         )
-    return _jpeg_size(data)
+    return _jpeg_header(data)
 
 
-def decode_image(data: bytes, media_type: str, max_pixels: int) -> np.ndarray:
+def image_size(data: bytes, media_type: str) -> tuple[int, int]:
+    """(width_px, height_px) from the header of PNG/JPEG ``data`` (see :func:`read_header`)."""
+    header = read_header(data, media_type)
+    return header.width_px, header.height_px
+
+
+def check_header(data: bytes, media_type: str, max_pixels: int, max_decoded_bytes: int | None) -> ImageHeader:
+    """Refuse, from the header alone, an image that is empty or would decode too large.
+
+    This is the decompression-bomb guard: a 130 kB PNG declaring 4096x4096 16-bit RGBA would
+    decode to 128 MiB; it is refused here in microseconds, before any decoder runs.
+
+    Args:
+        data: the encoded file.
+        media_type: ``"image/png"`` or ``"image/jpeg"``.
+        max_pixels: largest accepted ``width * height``.
+        max_decoded_bytes: largest accepted ``width*height*channels*bytes_per_sample``
+            (``None``: no byte limit).
+
+    Raises:
+        RequestProblem: 400 for empty or non-image data; 413 (``image-too-large``) over a limit.
+    """
+    if not data:
+        raise _undecodable("the request body is empty; send the encoded image as the body.")
+    h = read_header(data, media_type)
+    if h.width_px == 0 or h.height_px == 0:
+        raise _undecodable(f"the image header says {h.width_px}x{h.height_px} pixels; send a non-empty image.")
+    if h.pixels > max_pixels:
+        raise RequestProblem(
+            413, "image-too-large", "Image has too many pixels",
+            f"the image is {h.width_px}x{h.height_px} = {h.pixels} pixels, more than the limit of "
+            f"{max_pixels}; downscale it (the network runs at a few hundred pixels wide anyway).",
+        )
+    if max_decoded_bytes is not None and h.decoded_bytes > max_decoded_bytes:
+        raise RequestProblem(
+            413, "image-too-large", "Image has too many pixels",
+            f"the image header declares {h.width_px}x{h.height_px} pixels x {h.channels} channels x "
+            f"{8 * h.bytes_per_sample} bits = {h.decoded_bytes} bytes decoded, more than the limit "
+            f"of {max_decoded_bytes} bytes; send it as 8-bit gray (the network's input) or "
+            "downscale it.",
+        )
+    return h
+
+
+def decode_image(
+    data: bytes, media_type: str, max_pixels: int, max_decoded_bytes: int | None = None
+) -> np.ndarray:
     """Decode PNG/JPEG ``data`` into a ``(H, W)`` uint8 gray array.
 
     Args:
         data: the encoded file.
         media_type: ``"image/png"`` or ``"image/jpeg"`` (see :func:`normalise_media_type`).
         max_pixels: largest accepted ``width * height``.
+        max_decoded_bytes: largest decoded raster, bytes (see :func:`check_header`).
 
     Raises:
         RequestProblem: 400 for empty, garbage, truncated or mismatched data; 413 when the
-            header announces more than ``max_pixels`` pixels.
+            header announces more than ``max_pixels`` pixels or ``max_decoded_bytes`` bytes.
     """
-    if not data:
-        raise _undecodable("the request body is empty; send the encoded image as the body.")
-    width, height = image_size(data, media_type)
-    if width == 0 or height == 0:
-        raise _undecodable(f"the image header says {width}x{height} pixels; send a non-empty image.")
-    if width * height > max_pixels:
-        raise RequestProblem(
-            413, "image-too-large", "Image has too many pixels",
-            f"the image is {width}x{height} = {width * height} pixels, more than the limit of "
-            f"{max_pixels}; downscale it (the network runs at a few hundred pixels wide anyway).",
-        )
+    check_header(data, media_type, max_pixels, max_decoded_bytes)
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
     if image is None or image.size == 0:
         raise _undecodable(

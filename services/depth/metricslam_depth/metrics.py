@@ -9,7 +9,10 @@ Names (all prefixed ``depth_``):
 * ``depth_queue_depth`` — requests waiting for an inference slot right now;
 * ``depth_inflight`` — requests decoding/inferring right now;
 * ``depth_rejected_total{reason}`` — requests refused by admission control
-  (``queue_full`` -> 429, ``queue_timeout`` -> 503, ``not_ready`` -> 503);
+  (``queue_full`` -> 429, ``queue_timeout`` -> 503, ``not_ready`` -> 503, ``busy`` -> 503 over
+  ``max_inflight_requests``, ``body_budget`` -> 503 no upload memory free in time);
+* ``depth_body_bytes_reserved`` — upload bytes reserved by requests right now (of
+  ``max_buffered_body_bytes``);
 * ``depth_model_loaded`` — 1 once the model is loaded.
 """
 
@@ -58,6 +61,9 @@ class ServiceMetrics:
         self.inflight = Gauge("depth_inflight", "requests decoding/inferring now", registry=r)
         self.rejected = Counter(
             "depth_rejected", "requests refused by admission control", ["reason"], registry=r
+        )
+        self.body_bytes_reserved = Gauge(
+            "depth_body_bytes_reserved", "upload bytes reserved by requests now", registry=r
         )
         self.model_loaded = Gauge("depth_model_loaded", "1 once the model is loaded", registry=r)
 

@@ -1,26 +1,34 @@
 """HTTP endpoints of the depth service (OpenAPI documents every status each one can answer).
 
 Order of checks on the inference endpoints, cheapest and most permanent first:
-fx (422) -> Content-Type (415) -> declared body size (413) -> readiness (503) -> body read
-with a hard limit (413) -> admission (429/503) -> decode (400/413) -> network.
+fx (422) -> Content-Type (415) -> declared body size (413) -> readiness (503) -> upload memory
+budget (503) -> body streamed with a hard limit and deadline (413/408; a batch image part is
+judged as it arrives) -> image headers: pixels and decoded bytes (400/413) -> admission
+(429/503) -> decode (400) -> network. Everything before admission costs microseconds of the
+event loop per request and holds no inference slot. (In front of all of it:
+:class:`~metricslam_depth.admission.InflightLimit` and the connection guards.)
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
-from starlette.requests import ClientDisconnect
 
 from metricslam.depth import ModelContract
 
+from . import bodies
+from .disclosure import MODEL_LOAD_FAILED, public_contract
 from .errors import RequestProblem
-from .imaging import normalise_media_type
-from .multipart import parse_batch
+from .imaging import check_header, normalise_media_type
+from .multipart import BatchParser, boundary_of
 from .pipeline import DepthPipeline, Upload
 from .schemas import (
     BINARY_HEADERS,
+    FX_MAX_PX,
+    FX_MIN_PX,
     IMAGE_MEDIA_TYPES,
     NPY_MEDIA_TYPE,
     PROBLEM_MEDIA_TYPE,
@@ -36,11 +44,11 @@ router = APIRouter()
 FxQuery = Annotated[
     float,
     Query(
-        ge=1e-3,
-        le=1e7,
+        ge=FX_MIN_PX,
+        le=FX_MAX_PX,
         allow_inf_nan=False,
         description="focal length fx of the camera in pixels, at the resolution of the uploaded "
-        "image (e.g. 718.856 for KITTI 00-02); finite, 0.001 <= fx <= 1e7",
+        f"image (e.g. 718.856 for KITTI 00-02); finite, {FX_MIN_PX:g} <= fx <= {FX_MAX_PX:g}",
         examples=[718.856],
     ),
 ]
@@ -63,11 +71,14 @@ _BINARY_DOC = {
 }
 _ERRORS: dict[int | str, dict[str, Any]] = {
     400: _problem_doc("the image is empty, truncated, corrupt or not of the declared type"),
-    413: _problem_doc("body, image or batch larger than the configured limits"),
+    408: _problem_doc("the body did not arrive within body_timeout_s"),
+    413: _problem_doc("body, image part, decoded image (pixels or bytes) or batch larger than the "
+                      "configured limits"),
     415: _problem_doc("Content-Type is not supported by this endpoint"),
     422: _problem_doc("fx missing, not a number, non-finite or out of range"),
     429: _problem_doc("too many requests waiting; retry after Retry-After", retry_after=True),
-    503: _problem_doc("model not loaded yet, or no inference slot within the timeout", retry_after=True),
+    503: _problem_doc("model not loaded yet, too many requests or uploads in progress, or no inference "
+                      "slot within the timeout", retry_after=True),
 }
 _OK_HEADERS = {name: {"description": text, "schema": {"type": "string"}} for name, text in BINARY_HEADERS.items()}
 
@@ -119,8 +130,8 @@ def _not_ready(request: Request) -> RequestProblem:
     state = request.app.state.depth
     if state.load_error is not None:
         detail = (
-            f"the depth model failed to load ({state.load_error}); fix the model path "
-            "(DEPTH_MODEL_PATH / --model) and restart the service."
+            f"{MODEL_LOAD_FAILED}; the operator must fix the model (DEPTH_MODEL_PATH or --model) "
+            "and restart the service."
         )
     else:
         detail = "the depth model is still loading; retry after the Retry-After delay (see /readyz)."
@@ -138,36 +149,9 @@ def _pipeline(request: Request) -> DepthPipeline:
     return pipeline
 
 
-def _too_large(limit: int, what: str) -> RequestProblem:
-    return RequestProblem(
-        413, "body-too-large", "Request body too large",
-        f"the {what} is larger than the limit of {limit} bytes; send a smaller (downscaled or "
-        "JPEG) image, or raise DEPTH_MAX_BODY_BYTES on the server.",
-    )
-
-
-def _check_declared_length(request: Request, limit: int, what: str) -> None:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise _too_large(limit, what)
-
-
-async def _read_body(request: Request, limit: int, what: str) -> bytes:
-    """The whole body, refusing (413) as soon as more than ``limit`` bytes arrive."""
-    chunks: list[bytes] = []
-    size = 0
-    try:
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
-                raise _too_large(limit, what)
-            chunks.append(chunk)
-    except ClientDisconnect:
-        raise RequestProblem(
-            400, "incomplete-body", "Request body incomplete",
-            f"the connection closed after {size} bytes of the {what}; send the whole body.",
-        ) from None
-    return b"".join(chunks)
+def _free(data: bytearray) -> None:
+    with contextlib.suppress(BufferError):  # still exported to a decoder: GC frees it
+        data.clear()
 
 
 def _wants_npy(request: Request) -> bool:
@@ -208,12 +192,20 @@ async def _answer(request: Request, uploads: list[Upload], fx: float, route: str
 )
 async def disparity(request: Request, fx: FxQuery) -> Response:
     route = "/v1/disparity"
+    state = request.app.state.depth
+    settings = state.settings
     media_type = normalise_media_type(request.headers.get("content-type"))
-    limit = request.app.state.depth.settings.max_body_bytes
-    _check_declared_length(request, limit, "image")
+    limit = settings.max_body_bytes
+    declared = bodies.declared_length(request, limit, "image")
     _pipeline(request)
-    data = await _read_body(request, limit, "image")
-    return await _answer(request, [Upload(data, media_type)], fx, route, batch=False)
+    async with state.budget.reserve(limit if declared is None else declared):
+        data = bytearray()
+        try:
+            await bodies.receive(request, limit, "image", settings.body_timeout_s, data.extend)
+            check_header(data, media_type, settings.max_image_pixels, settings.max_decoded_bytes)
+            return await _answer(request, [Upload(data, media_type)], fx, route, batch=False)
+        finally:
+            _free(data)  # with the reservation: an error's traceback must not keep the body alive
 
 
 @router.post(
@@ -231,7 +223,8 @@ async def disparity(request: Request, fx: FxQuery) -> Response:
 )
 async def disparity_batch(request: Request, fx: FxQuery) -> Response:
     route = "/v1/disparity/batch"
-    settings = request.app.state.depth.settings
+    state = request.app.state.depth
+    settings = state.settings
     content_type = request.headers.get("content-type", "")
     if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
         raise RequestProblem(
@@ -239,12 +232,20 @@ async def disparity_batch(request: Request, fx: FxQuery) -> Response:
             f"got {content_type or 'no Content-Type'}; send multipart/form-data with one part per "
             "image, each named 'images' (e.g. curl -F images=@a.png -F images=@b.png).",
         )
+    boundary_of(content_type)
     limit = settings.max_batch_body_bytes
-    _check_declared_length(request, limit, "batch body")
+    declared = bodies.declared_length(request, limit, "batch body")
     _pipeline(request)
-    body = await _read_body(request, limit, "batch body")
-    uploads = parse_batch(content_type, body, settings.max_batch)
-    return await _answer(request, uploads, fx, route, batch=True)
+    async with state.budget.reserve(limit if declared is None else declared):
+        parser = BatchParser(
+            content_type, settings.max_batch, settings.max_body_bytes, settings.max_image_pixels,
+            settings.max_decoded_bytes,
+        )
+        try:
+            await bodies.receive(request, limit, "batch body", settings.body_timeout_s, parser.write)
+            return await _answer(request, parser.finish(), fx, route, batch=True)
+        finally:
+            parser.discard()
 
 
 # ----- model, health, readiness, metrics -----
@@ -257,7 +258,7 @@ async def disparity_batch(request: Request, fx: FxQuery) -> Response:
     tags=["model"],
 )
 async def model_contract(request: Request) -> ModelContract:
-    return _pipeline(request).model.contract
+    return public_contract(_pipeline(request).model.contract)
 
 
 @router.get("/healthz", response_model=Health, summary="Liveness: the process answers", tags=["ops"])
@@ -277,7 +278,7 @@ async def readyz(request: Request) -> JSONResponse:
     if state.pipeline is not None:
         c = state.pipeline.model.contract
         return JSONResponse(Ready(ready=True, model_id=c.model_id, weights_precision=c.weights_precision).model_dump())
-    detail = f"model failed to load: {state.load_error}" if state.load_error else "model is loading"
+    detail = MODEL_LOAD_FAILED if state.load_error else "model is loading"
     return JSONResponse(
         Ready(ready=False, detail=detail).model_dump(),
         status_code=503,

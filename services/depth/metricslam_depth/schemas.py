@@ -19,6 +19,12 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 NPY_MEDIA_TYPE = "application/x-npy"
 IMAGE_MEDIA_TYPES = ("image/png", "image/jpeg")
 
+# Plausible focal length of the caller's camera, pixels at the uploaded image's resolution; the
+# one place the service's fx bounds live. 1e5 px is a 0.6 degree field of view on a 1000 px wide
+# image, already a telescope; larger values (and NaN/inf) are a units or parsing bug upstream.
+FX_MIN_PX = 1e-3
+FX_MAX_PX = 1e5
+
 #: header name -> meaning, for the binary (``application/x-npy``) form.
 BINARY_HEADERS: dict[str, str] = {
     "X-Model-Id": "model_id of the network that produced the arrays",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from metricslam.errors import ConfigError
@@ -20,6 +20,8 @@ from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT
 log = logging.getLogger(__name__)
 
 MIB = 1024 * 1024
+#: multipart framing (boundaries, part headers) allowed on top of the images of a batch
+BATCH_OVERHEAD_BYTES = 64 * 1024
 
 
 class DepthServiceSettings(BaseSettings):
@@ -29,6 +31,9 @@ class DepthServiceSettings(BaseSettings):
     to ``max_queue`` more wait for a slot, for at most ``request_timeout_s``. A request that
     finds the queue full gets 429, one that waits too long gets 503; both carry
     ``Retry-After: retry_after_s``.
+
+    Abuse limits (connections, timeouts, body and decoded-image budgets) are the fields from
+    ``max_connections`` on; docs/depth_service.md "Limits" says what each one refuses and how.
     """
 
     model_config = SettingsConfigDict(env_prefix="DEPTH_", frozen=True, extra="forbid")
@@ -53,14 +58,51 @@ class DepthServiceSettings(BaseSettings):
     )
     retry_after_s: int = Field(1, ge=0, le=3600, description="Retry-After on 429/503")
     max_body_bytes: int = Field(
-        8 * MIB, ge=1024, description="largest encoded image accepted by /v1/disparity"
+        8 * MIB, ge=1024, description="largest encoded image: the /v1/disparity body, and each "
+        "image part of a batch (enforced while streaming)"
     )
     max_batch: int = Field(8, ge=1, le=256, description="most images per batch request")
     max_image_pixels: int = Field(
         4096 * 4096, ge=64, description="largest decoded image (width*height) accepted"
     )
     max_connections: int = Field(
-        256, ge=1, description="open connections uvicorn serves at once (beyond: plain 503)"
+        256, ge=8, le=65_536,
+        description="open TCP connections held at once; a new one beyond this closes the longest-"
+        "idle connection (no request running), or gets a plain 503 when every one is busy",
+    )
+    max_inflight_requests: int = Field(
+        128, ge=1, le=65_536,
+        description="requests being received or served at once (beyond: 503 + Retry-After); "
+        "/healthz and /readyz are exempt so liveness probes keep answering",
+    )
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=600,
+        description="a connection must deliver a complete request head (line + headers) within "
+        "this long after it opens or starts a request, else it is closed",
+    )
+    keep_alive_timeout_s: float = Field(
+        5.0, gt=0, le=600, description="an idle keep-alive connection is closed after this long"
+    )
+    body_timeout_s: float = Field(
+        30.0, gt=0, le=3600, description="longest time to receive one request body (else 408)"
+    )
+    max_header_bytes: int = Field(
+        32 * 1024, ge=1024, le=MIB, description="largest request line + headers (else 431, closed)"
+    )
+    max_buffered_body_bytes: int = Field(
+        128 * MIB, ge=1024,
+        description="upload bytes held in memory by all requests together (Content-Length, or the "
+        "endpoint's limit when not declared, is reserved before reading); beyond it a request "
+        "waits up to body_budget_wait_s, then 503",
+    )
+    body_budget_wait_s: float = Field(
+        5.0, gt=0, le=600, description="longest wait for upload memory (max_buffered_body_bytes) "
+        "before 503"
+    )
+    max_decoded_bytes: int = Field(
+        32 * MIB, ge=1024,
+        description="largest decoded image, width*height*channels*bytes-per-sample from the file "
+        "header (checked before decoding; a 4096x4096 16-bit RGBA PNG is 128 MiB)",
     )
     log_level: str = Field("info", description="uvicorn / logging level")
     access_log: bool = Field(False, description="uvicorn access log (one line per request)")
@@ -68,7 +110,17 @@ class DepthServiceSettings(BaseSettings):
     @property
     def max_batch_body_bytes(self) -> int:
         """Largest multipart body accepted by the batch endpoint (bytes)."""
-        return self.max_body_bytes * self.max_batch + 64 * 1024
+        return self.max_body_bytes * self.max_batch + BATCH_OVERHEAD_BYTES
+
+    @model_validator(mode="after")
+    def _budget_fits_one_batch(self) -> "DepthServiceSettings":
+        if self.max_buffered_body_bytes < self.max_batch_body_bytes:
+            raise ValueError(
+                f"max_buffered_body_bytes ({self.max_buffered_body_bytes}) must be at least one full "
+                f"batch body, max_body_bytes*max_batch + {BATCH_OVERHEAD_BYTES} = "
+                f"{self.max_batch_body_bytes}, or no maximal batch could ever be admitted"
+            )
+        return self
 
     def log_summary(self) -> None:
         """Log every setting on one line each (called at start-up)."""
@@ -88,6 +140,7 @@ def load_settings(**overrides: object) -> DepthServiceSettings:
     except ValidationError as exc:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e['loc'])} (env DEPTH_{str(e['loc'][0]).upper()}): {e['msg']}"
+            if e["loc"] else e["msg"]
             for e in exc.errors()
         )
         raise ConfigError(f"invalid depth-service settings: {problems}") from exc
