@@ -143,3 +143,20 @@ def _null_space_dim(graph: GlobalPoseGraph) -> int:
 def test_gauge_freedom(with_scale_factors, expected, mode):
     graph, _ = _build(8, with_scale_factors=with_scale_factors, drift=0.01, mode=mode)
     assert _null_space_dim(graph) == expected
+
+
+def test_range_gate_keeps_what_is_within_range_by_the_keyframes_own_scale():
+    """Near landmarks measure the true scale, far ones read x0.5 too near (the network's
+    far-range compression): the gate, iterating from the biased median, keeps exactly the near."""
+    from metricslam.slam.graph.scale_factor import range_gate
+
+    s_true = 2.0  # m per VO unit
+    depth_m = np.concatenate([np.linspace(8, 35, 20), np.linspace(50, 100, 30)])
+    xi = s_true / depth_m
+    scales = np.where(depth_m <= 40, s_true, 0.5 * s_true)
+    keep = range_gate(xi, scales, max_depth_m=40.0, min_keep=8)
+    assert keep.tolist() == (depth_m <= 40).tolist()
+    assert float(np.median(scales[keep])) == pytest.approx(s_true)
+    # all far (and read right): the 8 nearest are kept, not none
+    keep_far = range_gate(xi[20:], np.full(30, s_true), max_depth_m=40.0, min_keep=8)
+    assert keep_far.sum() == 8 and keep_far[:8].all()

@@ -84,6 +84,12 @@ class GraphConfig(BaseModel):
         max_scale_landmarks: at most this many landmarks per keyframe give scale factors
             (the strongest-parallax ones are not known here, so an even subsample).
         min_inv_depth_per_m / max_inv_depth_per_m: network inverse depths outside are unusable.
+        scale_max_depth_m: range gate of the scale factors (None = off): only landmarks whose
+            metric depth, by the keyframe's own scale estimate (iterated, see
+            :func:`.scale_factor.scale_measurements`), is at most this far give measurements —
+            beyond it a single coarse image hardly constrains depth and the network regresses
+            to its mean (``bench/scale_measurements.py``: x0.4-0.6 beyond 40 m on both
+            validation drives). At least ``scale_gate_min_landmarks`` (the nearest) are kept.
         loop_sigma_rot_rad / loop_sigma_trans_rel / loop_sigma_log_scale: loop factor sigmas.
         loop_kernel: robust kernel on loop factors ("huber", convex, default: a gated loop must be
             able to pull a drifted map home; "cauchy"; "dcs" refuses large corrections).
@@ -115,6 +121,8 @@ class GraphConfig(BaseModel):
     max_scale_landmarks: int = Field(default=48, gt=0)
     min_inv_depth_per_m: float = Field(default=1.0 / 80.0, gt=0)
     max_inv_depth_per_m: float = Field(default=1.0 / 1.5, gt=0)
+    scale_max_depth_m: float | None = Field(default=None, gt=0)
+    scale_gate_min_landmarks: int = Field(default=8, ge=1)
     loop_sigma_rot_rad: float = Field(default=0.01, gt=0)
     loop_sigma_trans_rel: float = Field(default=0.05, gt=0)
     loop_sigma_log_scale: float = Field(default=0.05, gt=0)

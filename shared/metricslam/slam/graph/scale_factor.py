@@ -40,8 +40,9 @@ def scale_measurements(
         landmarks_inv_depth: (M,) VO inverse depths ξ_j (1 / keyframe units).
         net_inv_depth_per_m: (M,) network inverse depth z_j (1/m) sampled at the landmarks.
         config: inverse depths outside ``[min_inv_depth_per_m, max_inv_depth_per_m]``
-            (sky / too near) and non-finite values are dropped; at most
-            ``max_scale_landmarks`` are kept (even subsample, deterministic).
+            (sky / too near) and non-finite values are dropped; with ``scale_max_depth_m`` the
+            range gate (:func:`range_gate`) applies; at most ``max_scale_landmarks`` are kept
+            (even subsample, deterministic).
     """
     xi = np.asarray(landmarks_inv_depth, dtype=float).reshape(-1)
     z = np.asarray(net_inv_depth_per_m, dtype=float).reshape(-1)
@@ -50,10 +51,38 @@ def scale_measurements(
         & (z >= config.min_inv_depth_per_m) & (z <= config.max_inv_depth_per_m)
     )
     s = xi[ok] / z[ok]
+    if config.scale_max_depth_m is not None and s.size:
+        s = s[range_gate(xi[ok], s, config.scale_max_depth_m, config.scale_gate_min_landmarks)]
     if s.size > config.max_scale_landmarks:
         idx = np.linspace(0, s.size - 1, config.max_scale_landmarks).round().astype(int)
         s = s[idx]
     return s
+
+
+def range_gate(xi: np.ndarray, scales: np.ndarray, max_depth_m: float, min_keep: int,
+               iterations: int = 5) -> np.ndarray:
+    """(K,) bool: the landmarks within ``max_depth_m`` of the camera by the keyframe's own scale.
+
+    A landmark's metric depth is ``s / ξ_j`` for the keyframe scale ``s`` (m per VO unit); ``s``
+    starts as the median of all measurements and is re-estimated from the kept ones until the
+    selection stops changing — the VO's *relative* depths are exact, so only the common scale
+    is uncertain. When fewer than ``min_keep`` are within range, the ``min_keep`` nearest (largest
+    ``ξ``) are kept instead, so a keyframe that sees only far structure still gets a measurement.
+    """
+    xi = np.asarray(xi, dtype=float)
+    scales = np.asarray(scales, dtype=float)
+    if scales.size <= min_keep:
+        return np.ones(scales.size, dtype=bool)
+    nearest = np.zeros(scales.size, dtype=bool)
+    nearest[np.argsort(-xi, kind="stable")[:min_keep]] = True
+    keep = np.ones(scales.size, dtype=bool)
+    for _ in range(iterations):
+        within = float(np.median(scales[keep])) / xi <= max_depth_m
+        new = within if within.sum() >= min_keep else nearest
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return keep
 
 
 def robust_log_scale(scales: np.ndarray, sigma_log: float, huber_k: float,
