@@ -21,9 +21,10 @@ $(STAMP): pyproject.toml | $(BIN)/python
 install: $(STAMP)
 
 # Tests also need the dev tools, the training extra (torch CPU wheel, pinned) and the viz extra
-# (rerun-sdk, so the live-view recording test runs).
+# (rerun-sdk, so the live-view recording test runs), and the ros extra (rosbags, mcap: the ROS 2
+# bridge and MCAP recording tests).
 $(VENV)/.installed-dev: $(STAMP) pyproject.toml
-	$(BIN)/pip install -q -e '.[dev,train,viz]'
+	$(BIN)/pip install -q -e '.[dev,train,viz,ros]'
 	@touch $@
 
 install-dev: $(VENV)/.installed-dev

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 from dataset_fixtures import CX, CY, FX, H, W, gray, poses
+from metricslam.calibration import make_calibration
 from metricslam.camera import PinholeCamera
 from metricslam.datasets import EuRoC, TumRgbd, detect_format
 from metricslam.errors import CalibrationError, DatasetError, TrajectoryError
@@ -138,9 +139,10 @@ def test_tum_association_depth_and_presets(tmp_path):
     gt = poses(len(t_gt), seed=3)
     idx = [int(np.argmin(np.abs(t_gt - t))) for t in s.t_ns]
     assert np.allclose(s.T_world_cam_gt, gt[idx], atol=1e-7)
-    f = s[0]
-    assert f.image.shape == (H, W, 3) and f.image[0, 0, 0] == 1
-    assert f.depth_m[0, 0] == pytest.approx(2.0)  # depth 15 ms earlier, within 20 ms
+    f = s[0]  # Freiburg 1 images are undistorted with the published coefficients (same K)
+    assert f.image.shape == (H, W, 3) and f.image[H // 2, W // 2, 0] == 1
+    assert f.depth_m[H // 2, W // 2] == pytest.approx(2.0)  # depth 15 ms earlier, within 20 ms
+    assert s.undistort_maps is not None
     assert detect_format(root) == "tum"
     assert len(TumRgbd(root, require_groundtruth=False)) == 6
 
@@ -150,12 +152,16 @@ def test_tum_explicit_camera_and_errors(tmp_path):
     root = make_tum(tmp_path / "seq")
     cam = PinholeCamera(fx_px=10, fy_px=10, cx_px=20, cy_px=15, width_px=W, height_px=H)
     assert TumRgbd(root, camera=cam).camera == cam
-    assert TumRgbd(root).camera.fx_px == pytest.approx(525.0 * W / 640)
+    with pytest.raises(CalibrationError, match="--calib"):  # no intrinsics, no Freiburg name: no guess
+        TumRgbd(root)
+    calib = make_calibration(cam.K, W, H, "radtan", (0.1, 0.0, 0.0, 0.0), source="test")
+    s = TumRgbd(root, calibration=calib)
+    assert s.camera == cam and s.undistort_maps is not None
     (root / "rgb.txt").write_text("# x\n1305031102.1 rgb/a.png extra\n")
     with pytest.raises(DatasetError, match="timestamp filename") as info:
-        TumRgbd(root)
+        TumRgbd(root, camera=cam)
     assert info.value.line == 2
     (root / "rgb.txt").write_text("1305031102.1 rgb/a.png\n")
     (root / "groundtruth.txt").write_text("1 2 3\n")
     with pytest.raises(TrajectoryError, match="8 numbers"):
-        TumRgbd(root)
+        TumRgbd(root, camera=cam)

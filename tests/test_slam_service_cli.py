@@ -60,7 +60,7 @@ def test_camera_to_poses_tum(service, tmp_path: Path) -> None:
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert poses.stdout.readline().startswith("recording")
     cam = subprocess.run(CLI + ["camera", "--device", str(video), "--zenoh-endpoint", ENDPOINT,
-                                "--camera-id", "webcam", "--max-rate", "20"],
+                                "--camera-id", "webcam", "--max-rate", "20", "--fx", "140"],
                          capture_output=True, text=True, timeout=60)
     assert cam.returncode == 0, cam.stderr
     assert "published 12 frames" in cam.stdout

@@ -171,3 +171,20 @@ def test_wire_is_pure() -> None:
     code = ("import sys, metricslam.wire; bad = [m for m in ('zenoh', 'httpx', 'fastapi', 'torch') "
             "if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_map_messages_round_trip_and_check_shapes() -> None:
+    from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
+
+    points = np.arange(12, dtype=np.float32).reshape(4, 3)
+    lm = decode(encode(LandmarksMessage(camera_id="cam0", frame_index=3, t_ns=7, points_world=points)))
+    assert isinstance(lm, LandmarksMessage) and lm.frame_index == 3
+    np.testing.assert_array_equal(lm.points_world, points)
+    inv = np.array([[0.1, 0.0], [0.5, -1.0]], dtype=np.float32)
+    depth = decode(encode(KeyframeDepthMessage(camera_id="cam0", frame_index=3, t_ns=7, image_width_px=64,
+                                               image_height_px=32, inv_depth_per_m=inv)))
+    np.testing.assert_array_equal(depth.inv_depth_per_m, inv)
+    np.testing.assert_allclose(depth.depth_m(), [[10.0, np.nan], [2.0, np.nan]])
+    assert {"path", "landmarks", "keyframe_depth"} <= set(keys.TOPICS)
+    with pytest.raises(ValueError):
+        LandmarksMessage(camera_id="cam0", frame_index=0, t_ns=0, points_world=np.zeros((4, 2), np.float32))

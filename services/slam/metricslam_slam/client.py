@@ -18,6 +18,7 @@ from metricslam.wire import keys
 from metricslam.wire.codec import (
     FrameMessage, KeyframeMessage, PoseMessage, StatusMessage, TrajectoryMessage, decode_as, encode,
 )
+from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
 
 
 class FramePublisher:
@@ -50,15 +51,20 @@ class PoseRecorder:
         arrival_ns: frame_index -> ``time.perf_counter_ns()`` at arrival.
         statuses: every :class:`StatusMessage` received, in order.
         keyframes: every :class:`KeyframeMessage` received.
+        paths, landmarks, depths: with ``map_topics``, every ``…/path`` (TrajectoryMessage),
+            ``…/landmarks`` and ``…/keyframe_depth`` message received, in arrival order.
         malformed: payloads that did not decode.
     """
 
-    def __init__(self, session: zenoh.Session, camera_id: str) -> None:
+    def __init__(self, session: zenoh.Session, camera_id: str, map_topics: bool = False) -> None:
         self.camera_id = keys.check_camera_id(camera_id)
         self.poses: dict[int, PoseMessage] = {}
         self.arrival_ns: dict[int, int] = {}
         self.statuses: list[StatusMessage] = []
         self.keyframes: list[KeyframeMessage] = []
+        self.paths: list[TrajectoryMessage] = []
+        self.landmarks: list[LandmarksMessage] = []
+        self.depths: list[KeyframeDepthMessage] = []
         self.malformed = 0
         self._cond = threading.Condition()
         self._subs = [
@@ -66,6 +72,18 @@ class PoseRecorder:
             session.declare_subscriber(keys.key(camera_id, "status"), self._on_status),
             session.declare_subscriber(keys.key(camera_id, "keyframe"), self._on_keyframe),
         ]
+        if map_topics:
+            for topic, cls, into in (("path", TrajectoryMessage, self.paths),
+                                     ("landmarks", LandmarksMessage, self.landmarks),
+                                     ("keyframe_depth", KeyframeDepthMessage, self.depths)):
+                self._subs.append(session.declare_subscriber(
+                    keys.key(camera_id, topic), lambda sample, c=cls, i=into: self._append(sample, c, i)))
+
+    def _append(self, sample: zenoh.Sample, cls, into: list) -> None:
+        msg = self._decode(sample, cls)
+        if msg is not None:
+            with self._cond:
+                into.append(msg)
 
     def _decode(self, sample: zenoh.Sample, cls):
         try:

@@ -1,4 +1,5 @@
-"""Turn recorded pose messages into a trajectory file (KITTI or TUM), one line per frame."""
+"""Turn recorded messages into files: a trajectory (KITTI or TUM), one line per frame, and an
+MCAP recording for Foxglove (:func:`write_mcap`, docs/recordings.md)."""
 
 from __future__ import annotations
 
@@ -46,3 +47,28 @@ def write_poses(path: str | Path, fmt: str, poses: dict[int, PoseMessage],
     else:
         raise ServiceError(f"unknown pose format {fmt!r}; use kitti or tum")
     return n_frames
+
+
+def write_mcap(path: str | Path, camera_id: str, recorder, trajectory: TrajectoryMessage | None = None) -> dict:
+    """Write what a :class:`~metricslam_slam.client.PoseRecorder` (made with ``map_topics=True``)
+    received as an MCAP file, the layout ``metricslam run --mcap`` writes: every pose, keyframe
+    images (when the service attaches them: ``--keyframe-images``), keyframe depth maps,
+    landmarks, every ``…/path`` update and, when given, ``trajectory`` as the final path.
+    Messages are stamped (``log_time``) with their frame's ``t_ns``. Returns topic -> count."""
+    from metricslam.ros2.mcap_log import McapLog
+
+    with McapLog(path, camera_id=camera_id) as log:
+        for i in sorted(recorder.poses):
+            log.pose(recorder.poses[i].t_ns, recorder.poses[i].T_world_cam)
+        for kf in recorder.keyframes:
+            if kf.image is not None:
+                log.keyframe_image(kf.t_ns, kf.image, None)
+        for depth in recorder.depths:
+            log.keyframe_depth(depth.t_ns, depth.inv_depth_per_m)
+        for lm in recorder.landmarks:
+            log.landmarks(lm.t_ns, lm.points_world)
+        paths = list(recorder.paths) + ([trajectory] if trajectory is not None else [])
+        for p in paths:
+            if len(p.t_ns):
+                log.path(int(p.t_ns.max()), p.t_ns, p.T_world_cam)
+        return dict(log.counts)

@@ -2,7 +2,10 @@
 
 Subscribes ``metricslam/*/frame``; each camera id gets a :class:`CameraWorker` (bounded
 drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every processed frame,
-``…/keyframe`` per keyframe, ``…/status`` every ``status_period_s``; answers the queryables
+``…/keyframe`` per keyframe, ``…/status`` every ``status_period_s``, and the map topics
+``…/path``, ``…/landmarks``, ``…/keyframe_depth`` (:class:`MapPublisher`); with ``ros2`` on, a
+:class:`~metricslam_slam.ros2_bridge.Ros2Bridge` mirrors them as ROS 2 topics and takes
+``sensor_msgs`` camera input; answers the queryables
 ``…/trajectory`` (whole current trajectory) and ``metricslam/_service/health`` (JSON).
 Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
 """
@@ -23,6 +26,7 @@ from metricslam.slam.system_config import SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
 from metricslam_slam.camera_worker import CameraWorker
+from metricslam_slam.map_publisher import MapPublisher
 from metricslam_slam.sessions import SessionFactory, make_session_factory
 from metricslam_slam.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import open_client
@@ -55,12 +59,15 @@ class SlamService:
                 retries=settings.depth_retries, backoff_s=settings.depth_backoff_s)
         self.viewer = None
         if settings.rerun:
-            from metricslam_slam.rerun_view import RerunView
+            from metricslam.rerun_view import RerunView
             self.viewer = RerunView(settings.rerun)
         self.depth_source = depth_source
         factory = session_factory or make_session_factory(
             settings.session_kind, self.config, depth_source)
-        self._factory = factory if self.viewer is None else self.viewer.observing(factory)
+        factory = factory if self.viewer is None else self.viewer.observing(factory)
+        self._factory = self._with_map(factory)
+        self._maps: dict[str, MapPublisher] = {}
+        self.ros2 = None  # the ROS 2 bridge (settings.ros2), made in start()
         self._workers: dict[str, CameraWorker] = {}
         self._workers_lock = threading.Lock()
         self._stopped = threading.Event()
@@ -96,6 +103,11 @@ class SlamService:
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
         ]
+        if self.settings.ros2:
+            from metricslam_slam.ros2_bridge import Ros2Bridge
+            st = self.settings
+            self.ros2 = Ros2Bridge(s, st.ros2_domain_id, st.ros2_node_name, self._offer_frame, self._put,
+                                   self._serves, st.ros2_position_sigma_m, st.ros2_rotation_sigma_rad)
         self._status_thread = threading.Thread(target=self._status_loop, name="slam-status", daemon=True)
         self._status_thread.start()
         log.info("SLAM service connected to %s; listening on %s", self.settings.zenoh_endpoint,
@@ -110,6 +122,8 @@ class SlamService:
         self._stop_requested.set()
         for entity in self._entities[:1]:
             entity.undeclare()
+        if self.ros2 is not None:
+            self.ros2.close_inputs()
         with self._workers_lock:
             workers = list(self._workers.values())
         for worker in workers:
@@ -119,6 +133,10 @@ class SlamService:
         self._publish_status()
         for entity in self._entities[1:]:
             entity.undeclare()
+        for map_publisher in list(self._maps.values()):
+            map_publisher.close()
+        if self.ros2 is not None:
+            self.ros2.close()
         if self._session is not None:
             self._session.close()
         if self.viewer is not None:
@@ -150,7 +168,7 @@ class SlamService:
                 worker = CameraWorker(camera_id, self._factory,
                                       lambda topic, msg, cid=camera_id: self._put(cid, topic, msg),
                                       self.config.queues.frames, self.settings.keyframe_images,
-                                      self._on_estimate if self.viewer is not None else None)
+                                      self._on_estimate)
                 self._workers[camera_id] = worker
             return worker
 
@@ -165,8 +183,29 @@ class SlamService:
         if not self._stopped.is_set():
             self._worker(camera_id).offer(sample.payload.to_bytes())
 
+    def _offer_frame(self, camera_id: str, payload: bytes) -> None:
+        if not self._stopped.is_set():
+            self._worker(camera_id).offer(payload)
+
+    def _serves(self, camera_id: str) -> bool:
+        return self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame")))
+
+    def _with_map(self, factory: SessionFactory) -> SessionFactory:
+        """Wrap a session factory: each new session gets a :class:`MapPublisher` (path,
+        landmarks and keyframe depth of that camera)."""
+        def make(camera_id, camera):
+            session = factory(camera_id, camera)
+            self._maps[camera_id] = MapPublisher(
+                camera_id, session, lambda topic, msg, cid=camera_id: self._put(cid, topic, msg))
+            return session
+        return make
+
     def _on_estimate(self, camera_id, frame, est, session) -> None:
-        self.viewer.log(camera_id, frame, est, session)
+        if self.viewer is not None:
+            self.viewer.log(camera_id, frame, est, session)
+        map_publisher = self._maps.get(camera_id)
+        if map_publisher is not None:
+            map_publisher.after_frame(frame, est)
 
     def _put(self, camera_id: str, topic: str, message: Message) -> None:
         if self._session is None:
@@ -175,6 +214,8 @@ class SlamService:
             self._session.put(keys.key(camera_id, topic), encode(message))
         except zenoh.ZError as exc:  # session closing; nothing to do but note it
             log.debug("publish on %s/%s failed: %s", camera_id, topic, exc)
+        if self.ros2 is not None:
+            self.ros2.forward(camera_id, topic, message)
 
     # -- queryables --------------------------------------------------------------------------
     def _on_trajectory_query(self, query: zenoh.Query) -> None:
@@ -208,7 +249,8 @@ class SlamService:
         depth_url, reachable, _, outages = self._depth_link()
         return {"ready": self._session is not None and not self._stopped.is_set(),
                 "cameras": cameras, "unrouted": self.unrouted, "depth_url": depth_url,
-                "depth_reachable": reachable, "depth_outages": outages}
+                "depth_reachable": reachable, "depth_outages": outages,
+                "ros2": None if self.ros2 is None else self.ros2.stats()}
 
     # -- depth link --------------------------------------------------------------------------
     def _depth_link(self) -> tuple[str | None, bool | None, str | None, int]:

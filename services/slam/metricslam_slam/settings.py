@@ -42,6 +42,15 @@ class SlamServiceSettings(BaseSettings):
         frame_key_expr: which cameras this worker serves, e.g. ``metricslam/fleet-a-$*/frame``
             (partition cameras across SLAM workers; docs/deployment.md).
         rerun: live view with rerun-sdk: ``web`` or a ``.rrd`` path (needs the ``viz`` extra).
+        ros2: also speak ROS 2 over Zenoh as rmw_zenoh does (``SLAM_ROS2=1``; the ``ros``
+            extra): publish ``/metricslam/<cam>/odom``, ``…/pose``, ``…/path``, ``…/landmarks``
+            and take ``…/image`` + ``…/camera_info`` as input (docs/ros2.md).
+        ros2_domain_id: ``ROS_DOMAIN_ID`` of those topics (``SLAM_ROS2_DOMAIN_ID``).
+        ros2_node_name: the ROS 2 node the topics belong to (``ros2 node list``).
+        ros2_position_sigma_m / ros2_rotation_sigma_rad: the NOMINAL standard deviations put on
+            the diagonal of ``Odometry.pose.covariance`` once metric scale is established (the
+            SLAM computes no per-frame marginal covariance; docs/ros2.md says why). Before that
+            the position variance is 1e6 m² (scale unknown).
     """
 
     model_config = SettingsConfigDict(env_prefix="SLAM_", frozen=True, extra="forbid")
@@ -58,6 +67,11 @@ class SlamServiceSettings(BaseSettings):
     keyframe_images: bool = False
     frame_key_expr: str = "metricslam/*/frame"
     rerun: str | None = None
+    ros2: bool = False
+    ros2_domain_id: int = Field(default=0, ge=0)
+    ros2_node_name: str = Field(default="metricslam_slam", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    ros2_position_sigma_m: float = Field(default=0.5, gt=0)
+    ros2_rotation_sigma_rad: float = Field(default=0.02, gt=0)
 
 
 def check_retired_environment(env: Mapping[str, str] | None = None) -> None:

@@ -2,16 +2,22 @@
 
 Example::
 
-    metricslam camera --device 0 --zenoh-endpoint tcp/127.0.0.1:7447 --fx 600
+    metricslam camera --device 0 --zenoh-endpoint tcp/127.0.0.1:7447 --calib my_camera.yaml
+    metricslam camera --device 0 --fx 600                  # focal length known, no distortion
+    metricslam camera --device 0 --assume-fov 60           # a guess: metric scale will be off
 
 Frames go out gray on ``metricslam/<camera_id>/frame`` with best-effort congestion control
-(a live stream drops rather than queues). Intrinsics come from ``--fx/--fy/--cx/--cy``
-(calibrate your camera!); without them a 60-degree horizontal field of view is assumed.
+(a live stream drops rather than queues). The SLAM service's metric scale depends on the
+intrinsics, so the command refuses to start without them: a ``--calib`` file (distortion is
+undone on each frame before it is published, same K; docs/calibration.md), or ``--fx`` [``--fy
+--cx --cy``], or an explicit guess ``--assume-fov DEG`` (horizontal field of view; logged as a
+warning).
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
 
@@ -24,6 +30,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--device", default="0", help="OpenCV device index or a video file/URL")
     p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
+    p.add_argument("--calib", metavar="FILE.yaml",
+                   help="camera calibration (metricslam, OpenCV FileStorage or EuRoC sensor.yaml "
+                        "YAML; docs/calibration.md): intrinsics, and distortion undone per frame")
+    p.add_argument("--assume-fov", type=float, metavar="DEG",
+                   help="no calibration: assume this horizontal field of view (a guess; metric "
+                        "scale is only as right as the guess)")
     p.add_argument("--fx", type=float, help="focal length x (px) at the capture resolution")
     p.add_argument("--fy", type=float, help="focal length y (px); default = fx")
     p.add_argument("--cx", type=float, help="principal point x (px); default = image centre")
@@ -34,20 +46,53 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
-def intrinsics(width_px: int, height_px: int, fx=None, fy=None, cx=None, cy=None):
-    """PinholeCamera from flags; unknown focal length -> 60 deg horizontal field of view."""
+def check_intrinsics_flags(args: argparse.Namespace) -> None:
+    """Refuse to start without intrinsics, or with two sources of them (ConfigError)."""
+    from metricslam.errors import ConfigError
+
+    given = [name for name, on in (("--calib", args.calib), ("--fx", args.fx is not None),
+                                   ("--assume-fov", args.assume_fov is not None)) if on]
+    if not given:
+        raise ConfigError(
+            "no camera intrinsics: metric scale depends on them. Pass --calib FILE.yaml (calibrate "
+            "with `metricslam calibrate`, docs/calibration.md), or --fx FX [--fy --cx --cy] if you "
+            "know the focal length in pixels, or --assume-fov DEG to run on a guessed horizontal "
+            "field of view")
+    if len(given) > 1:
+        raise ConfigError(f"{' and '.join(given)} both give intrinsics; pass one")
+    if args.assume_fov is not None and not 1.0 <= args.assume_fov < 179.0:
+        raise ConfigError(f"--assume-fov must be a horizontal field of view in degrees (1..179), "
+                          f"got {args.assume_fov}")
+
+
+def intrinsics(width_px: int, height_px: int, fx=None, fy=None, cx=None, cy=None, fov_deg=None):
+    """PinholeCamera from flags: ``fx`` (px), or the horizontal field of view ``fov_deg``."""
     import math
 
     from metricslam.camera import PinholeCamera
 
-    fx = fx if fx else 0.5 * width_px / math.tan(math.radians(30.0))
+    if not fx:
+        fx = 0.5 * width_px / math.tan(math.radians(0.5 * fov_deg))
     return PinholeCamera(fx_px=fx, fy_px=fy or fx, cx_px=(width_px - 1) / 2 if cx is None else cx,
                          cy_px=(height_px - 1) / 2 if cy is None else cy,
                          width_px=width_px, height_px=height_px)
 
 
+def frame_calibration(args: argparse.Namespace, width_px: int, height_px: int):
+    """The :class:`~metricslam.calibration.Calibration` of the captured frames, from the flags."""
+    from metricslam.calibration import Calibration, load_calibration
+
+    if args.calib:
+        return load_calibration(args.calib).for_image(width_px, height_px)
+    if args.assume_fov is not None:
+        logging.getLogger("metricslam.camera").warning(
+            "NO CALIBRATION: assuming a %g-degree horizontal field of view; metric scale is only as "
+            "right as this guess (docs/calibration.md)", args.assume_fov)
+    camera = intrinsics(width_px, height_px, args.fx, args.fy, args.cx, args.cy, args.assume_fov)
+    return Calibration(camera=camera, source="--assume-fov" if args.fx is None else "--fx")
+
+
 def run(args: argparse.Namespace) -> int:
-    import logging
     import signal
     import time
 
@@ -57,6 +102,11 @@ def run(args: argparse.Namespace) -> int:
     from metricslam_slam.client import FramePublisher
     from metricslam_slam.zenoh_config import open_client
 
+    check_intrinsics_flags(args)
+    if args.calib:  # a broken file is an error before the device opens
+        from metricslam.calibration import load_calibration
+
+        load_calibration(args.calib)
     log = logging.getLogger("metricslam.camera")
     source = int(args.device) if args.device.isdigit() else args.device
     capture = cv2.VideoCapture(source)
@@ -67,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.append(True))
     session = open_client(args.zenoh_endpoint)
     publisher = FramePublisher(session, args.camera_id, block=False)
-    camera = None
+    camera = maps = None
     index = 0
     t_first = time.monotonic_ns()
     try:
@@ -79,8 +129,11 @@ def run(args: argparse.Namespace) -> int:
                 break
             gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else bgr
             if camera is None:
-                camera = intrinsics(gray.shape[1], gray.shape[0], args.fx, args.fy, args.cx, args.cy)
+                calib = frame_calibration(args, gray.shape[1], gray.shape[0])
+                camera, maps = calib.camera, calib.undistort_maps()
                 print(f"publishing {args.camera_id} from {args.device}: {camera}", flush=True)
+            if maps is not None:
+                gray = cv2.remap(gray, *maps, interpolation=cv2.INTER_LINEAR)
             publisher.publish(index, time.monotonic_ns() - t_first, gray, camera)
             index += 1
             rest = 1.0 / args.max_rate - (time.monotonic() - t_loop)

@@ -4,6 +4,9 @@ Example::
 
     metricslam eval --gt poses/07.txt --est out/07.txt --json out/07.json --plot out/07.png
     metricslam eval --gt 06.txt --est e06.txt --gt 07.txt --est e07.txt   # per-sequence + pooled
+    metricslam eval --gt TUM_SEQ/groundtruth.txt --est est.tum              # associated by time
+    metricslam eval --gt MH_01_easy --est est.tum     # EuRoC folder: body GT x T_BS -> camera poses
+    metricslam eval --gt poses/06.txt --gt-times sequences/06/times.txt --est est.tum
 """
 
 from __future__ import annotations
@@ -16,16 +19,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "eval",
         help="evaluate estimated trajectories against ground truth",
         description="KITTI devkit t_rel/r_rel, ATE RMSE (unaligned / SE(3) / Sim(3)), RPE and "
-        "scale error of one or several (GT, estimate) pairs. Files are KITTI pose files "
+        "scale error of one or several (GT, estimate) pairs. Estimates are KITTI pose files "
         "(one 3x4 pose per frame) or TUM files (timestamp tx ty tz qx qy qz qw, associated by "
-        "timestamp). See docs/evaluation.md.",
+        "timestamp); ground truth is a KITTI, TUM or EuRoC (state_groundtruth_estimate0/data.csv) "
+        "file or a KITTI / TUM / EuRoC dataset folder. See docs/evaluation.md.",
     )
     p.add_argument("--gt", action="append", required=True, metavar="GT",
-                   help="ground-truth trajectory (repeat, paired in order with --est)")
+                   help="ground-truth trajectory file or dataset folder (repeat, paired in order "
+                        "with --est)")
+    p.add_argument("--gt-times", action="append", default=None, metavar="TIMES.txt",
+                   help="KITTI times.txt of a KITTI ground-truth file, to evaluate a TUM estimate "
+                        "against it (repeat, paired in order with --gt)")
     p.add_argument("--est", action="append", required=True, metavar="EST",
                    help="estimated trajectory (repeat, paired in order with --gt)")
-    p.add_argument("--format", choices=("auto", "kitti", "tum"), default="auto",
-                   help="file format (default: from the number of fields per line)")
+    p.add_argument("--format", choices=("auto", "kitti", "tum", "euroc"), default="auto",
+                   help="file format (default: from the fields per line; euroc applies to the "
+                        "ground truth only)")
     p.add_argument("--json", metavar="OUT.json", help="write the metrics as JSON")
     p.add_argument("--plot", metavar="OUT.png", help="write top view + error-vs-length plots")
     p.add_argument("--max-diff-ms", type=float, default=20.0,
@@ -48,13 +57,17 @@ def run(args: argparse.Namespace) -> int:
             f"got {len(args.gt)} --gt and {len(args.est)} --est: give them in pairs, "
             "--gt A --est A' --gt B --est B'"
         )
+    gt_times = args.gt_times or [None] * len(args.gt)
+    if len(gt_times) != len(args.gt):
+        raise EvaluationError(f"got {len(args.gt_times)} --gt-times for {len(args.gt)} --gt: give one "
+                              "per --gt, in the same order")
     names = [Path(e).stem for e in args.est]
     if len(set(names)) < len(names):
         names = [f"{Path(g).stem}:{Path(e).stem}" for g, e in zip(args.gt, args.est)]
     evaluations = [
         evaluate_files(g, e, fmt=args.format, name=n, max_diff_ns=int(args.max_diff_ms * 1e6),
-                       rpe_delta_frames=args.rpe_delta)
-        for g, e, n in zip(args.gt, args.est, names)
+                       rpe_delta_frames=args.rpe_delta, gt_times=t)
+        for g, e, n, t in zip(args.gt, args.est, names, gt_times)
     ]
     report = build_report(evaluations)
     print(format_table(report))

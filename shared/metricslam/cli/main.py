@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "demo": "metricslam.cli.demo_cmd",
     "camera": "metricslam.cli.camera_cmd",
     "quantize": "metricslam.cli.quantize_cmd",
+    "calibrate": "metricslam.cli.calibrate_cmd",
 }
 
 log = logging.getLogger("metricslam")

@@ -3,6 +3,7 @@
 Example::
 
     metricslam poses --zenoh-endpoint tcp/127.0.0.1:7447 --out est.txt --frames 300 --timeout 120
+    metricslam poses --out est.txt --frames 300 --mcap live.mcap   # plus an MCAP file for Foxglove
 
 Writes one line per frame in frame order (KITTI: 3x4 ``T_world_cam`` row-major; TUM:
 ``t tx ty tz qx qy qz qw``). ``--trajectory`` writes the service's optimized trajectory
@@ -29,24 +30,35 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--camera-id", default="cam0", metavar="ID")
     p.add_argument("--trajectory", action="store_true",
                    help="write the optimized trajectory (queried at the end) instead of live poses")
+    p.add_argument("--mcap", metavar="OUT.mcap",
+                   help="also write an MCAP recording for Foxglove (ros extra): poses, path updates, "
+                        "keyframe images (if the service sends them), depth maps, landmarks "
+                        "(docs/recordings.md)")
     p.set_defaults(func=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
     from metricslam_slam.client import PoseRecorder, query_trajectory
-    from metricslam_slam.recording import write_poses
+    from metricslam_slam.recording import write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
     session = open_client(args.zenoh_endpoint)
     try:
-        recorder = PoseRecorder(session, args.camera_id)
+        recorder = PoseRecorder(session, args.camera_id, map_topics=bool(args.mcap))
         print(f"recording metricslam/{args.camera_id}/pose ...", flush=True)
         recorder.wait_frames(args.frames, args.timeout)
+        if args.mcap:  # the last keyframe's landmarks, depth and path follow its pose
+            time.sleep(1.0)
         recorder.close()
         trajectory = query_trajectory(session, args.camera_id) if args.trajectory else None
     finally:
         session.close()
+    if args.mcap:  # before the pose file, which fails when frames are missing
+        counts = write_mcap(args.mcap, args.camera_id, recorder, trajectory)
+        print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
     n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames)
     print(f"wrote {n_written} poses to {args.out}")
     return 0

@@ -26,6 +26,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (0: as fast as possible)")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
+    p.add_argument("--calib", metavar="FILE.yaml",
+                   help="camera calibration replacing the reader's (as `run --calib`; "
+                        "docs/calibration.md); frames are undistorted before they are published")
     p.add_argument("--start", type=int, default=0, metavar="K", help="first frame to publish")
     p.add_argument("--max-frames", type=int, metavar="N", help="publish at most N frames")
     p.add_argument("--max-in-flight", type=int, default=0, metavar="N",
@@ -39,11 +42,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    from metricslam.calibration import load_calibration
     from metricslam.datasets import open_sequence
     from metricslam_slam.replay import replay_sequence, wait_for_service
     from metricslam_slam.zenoh_config import open_client
 
-    seq = open_sequence(args.seq_dir)
+    seq = open_sequence(args.seq_dir, calibration=load_calibration(args.calib) if args.calib else None)
     stop = None if args.max_frames is None else args.start + args.max_frames
     session = open_client(args.zenoh_endpoint)
     try:

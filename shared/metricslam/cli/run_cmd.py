@@ -6,6 +6,9 @@ Example::
     metricslam run SEQ --no-scale --out est.txt       # baseline: nothing learned anywhere
     metricslam run SEQ --vo-only --out est.txt        # local VO alone, no global graph
     metricslam run SEQ --deterministic --out est.txt  # no worker threads: reproducible
+    metricslam run TUM_SEQ --calib cam.yaml --format tum --out est.tum   # your intrinsics
+    metricslam run SEQ --out est.txt --rerun run.rrd  # plus a Rerun recording (viz extra)
+    metricslam run SEQ --out est.txt --mcap run.mcap  # plus an MCAP file for Foxglove (ros extra)
 
 Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame (``--format tum``:
 one ``t tx ty tz qx qy qz qw`` line per frame that has a pose). A frame that cannot be read
@@ -52,6 +55,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "without a pose (listed in --json); tum: timestamped lines, frames without "
                         "a pose left out")
     p.add_argument("--json", metavar="STATS.json", help="write run statistics as JSON")
+    p.add_argument("--calib", metavar="FILE.yaml",
+                   help="camera calibration (metricslam, OpenCV FileStorage or EuRoC sensor.yaml "
+                        "YAML; docs/calibration.md) replacing whatever the dataset reader would "
+                        "use; images are undistorted once at load when it has distortion. Needed "
+                        "for a TUM-layout folder whose name names no Freiburg camera")
+    p.add_argument("--rerun", metavar="OUT.rrd",
+                   help="also write a Rerun recording (rerun-sdk, the viz extra) with the SLAM "
+                        "service's entities: camera, image, trajectory, keyframes, landmarks, "
+                        "keyframe depth maps; open it with `rerun OUT.rrd`")
+    p.add_argument("--mcap", metavar="OUT.mcap",
+                   help="also write an MCAP recording for Foxglove (the ros extra): every frame's "
+                        "pose, the optimized path, keyframe images, coarse depth maps and "
+                        "landmarks as ROS 2 messages (docs/recordings.md)")
     p.add_argument("--no-scale", action="store_true",
                    help="no learned scale factors (scale fixed by the monocular initialization)")
     p.add_argument("--vo-only", action="store_true",
@@ -117,29 +133,48 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
+    from metricslam.calibration import load_calibration
     from metricslam.datasets import open_sequence
     from metricslam.datasets.frame_reader import FrameReader
     from metricslam.errors import ConfigError
+    from metricslam.ros2.session_log import SessionRecorder
     from metricslam.slam.session_builder import build_session, preset_for
     from metricslam.trajectory.io import write_kitti_poses, write_tum
 
     config = config_from_args(args)
-    seq = open_sequence(args.seq_dir)
+    viewer = open_recording(args.rerun) if args.rerun else None
+    calibration = load_calibration(args.calib) if args.calib else None
+    seq = open_sequence(args.seq_dir, calibration=calibration)
     preset = config.vo.preset or preset_for(args.seq_dir)
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     frames = FrameReader(seq)
+    mcap_log = open_mcap(args.mcap, camera_id(seq.name)) if args.mcap else None  # before any thread
     pipeline = build_session(seq.camera, config, default_preset=preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              pipeline.vo.config.model_dump())
+    logging.getLogger("metricslam.run").info("camera%s: %s", f" (from {args.calib})" if args.calib else "",
+                                             seq.camera)
+    if viewer is not None:
+        viewer.attach(pipeline)  # keyframe depth maps arrive as the back end's ScaleMeasured events
+    recorder = SessionRecorder(mcap_log, pipeline) if mcap_log is not None else None
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",
                       disable=args.no_progress):
-            pipeline.process(frames[i])
+            frame = frames[i]
+            est = pipeline.process(frame)
+            if viewer is not None:
+                viewer.log(camera_id(seq.name), frame, est, pipeline)
+            if recorder is not None:
+                recorder.after_frame(frame, est)
     finally:
         pipeline.close()
+        if viewer is not None:
+            viewer.close()
+        if recorder is not None:
+            recorder.close()  # the final optimized path, after the last solve; closes the file
     wall_s = time.perf_counter() - t0
     traj = pipeline.trajectory()
     if args.format == "tum":
@@ -165,6 +200,35 @@ def run(args: argparse.Namespace) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(stats, indent=2, default=float) + "\n")
     return 0
+
+
+def open_recording(target: str):
+    """The ``--rerun`` recording: a :class:`metricslam.rerun_view.RerunView` writing ``target``
+    (a ``.rrd`` path; an offline run has no live viewer to serve). Raises ConfigError, before
+    any frame is read, for another target or when rerun-sdk is not installed."""
+    from metricslam.errors import ConfigError
+    from metricslam.rerun_view import RerunView
+
+    if not target.endswith(".rrd"):
+        raise ConfigError(f"run --rerun takes a recording path ending in .rrd, got {target!r} "
+                          "(the live web viewer is the SLAM service's: slam-service --rerun web)")
+    return RerunView(target)
+
+
+def open_mcap(path: str, cam_id: str):
+    """The ``--mcap`` file: a :class:`metricslam.ros2.mcap_log.McapLog` (a
+    :class:`~metricslam.ros2.session_log.SessionRecorder` feeds it from the pipeline). Raises
+    ConfigError, before any frame is read, when the ros extra is not installed."""
+    from metricslam.ros2.mcap_log import McapLog
+
+    return McapLog(path, camera_id=cam_id)
+
+
+def camera_id(name: str) -> str:
+    """The recording's camera id (``world/<id>/…``): the sequence name in key-safe characters."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9._-]", "_", name) or "cam0"
 
 
 def pose_gap_stats(trajectory: list, unreadable: list[int]) -> dict:

@@ -6,7 +6,8 @@ Example::
     metricslam slam-service --config my_camera.yaml      # the same file `metricslam run` takes
 
 Subscribes ``metricslam/*/frame``; publishes ``…/pose`` (every frame), ``…/keyframe``,
-``…/status``; answers ``…/trajectory``. Service flags override ``SLAM_*`` environment variables;
+``…/status``, ``…/path``, ``…/landmarks``, ``…/keyframe_depth``; answers ``…/trajectory``;
+with ``--ros2`` the same outputs as ROS 2 topics (docs/ros2.md). Service flags override ``SLAM_*`` environment variables;
 the sessions' :class:`~metricslam.slam.system_config.SystemConfig` comes from ``--config`` (or
 ``METRICSLAM_CONFIG``), then ``METRICSLAM_*`` variables, then ``--preset`` / ``--no-scale`` /
 ``--queue-size``.
@@ -48,6 +49,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "'metricslam/fleet-a-$*/frame')")
     p.add_argument("--rerun", metavar="TARGET",
                    help="live view: 'web' (viewer on localhost) or FILE.rrd (needs metricslam[viz])")
+    p.add_argument("--ros2", action="store_true", default=None,
+                   help="also publish/subscribe ROS 2 topics as rmw_zenoh does (odom, pose, path, "
+                        "landmarks out; image + camera_info in; env SLAM_ROS2=1; needs "
+                        "metricslam[ros]; docs/ros2.md)")
+    p.add_argument("--ros-domain-id", dest="ros2_domain_id", type=int, metavar="N",
+                   help="ROS_DOMAIN_ID of the ROS 2 topics (default 0; env SLAM_ROS2_DOMAIN_ID)")
     p.set_defaults(func=run)
     return p
 
@@ -75,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     from metricslam_slam.settings import SlamServiceSettings
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
-                                                 "keyframe_images", "rerun", "frame_key_expr")
+                                                 "keyframe_images", "rerun", "frame_key_expr",
+                                                 "ros2", "ros2_domain_id")
                  if getattr(args, k) is not None}
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url

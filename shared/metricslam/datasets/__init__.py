@@ -55,7 +55,10 @@ def detect_format(path: str | Path) -> str:
 
 def open_sequence(path: str | Path, **kw) -> Sequence:
     """Open a sequence folder with the reader its layout calls for; ``kw`` go to the reader
-    (e.g. ``poses_file=``, ``load_right=`` for KITTI; ``format=`` forces a reader)."""
+    (e.g. ``poses_file=``, ``load_right=`` for KITTI; ``format=`` forces a reader).
+
+    Every reader takes ``calibration=`` (a :class:`metricslam.calibration.Calibration`, ``run
+    --calib``), which replaces the intrinsics it would read or infer and is undistorted at load."""
     fmt = kw.pop("format", None) or detect_format(path)
     if fmt not in READERS:
         raise DatasetError(f"unknown format {fmt!r}; expected one of {sorted(READERS)}", path)

@@ -88,7 +88,9 @@ class FileSequence:
         depth_scale_per_m: PNG value per metre of depth (256 KITTI, 5000 TUM).
         poses_gt: (N, 4, 4) ground-truth ``T_world_cam``, or None.
         color: load the left/right images as RGB (else gray).
-        undistort_maps: optional ``(map1, map2)`` for ``cv2.remap`` applied to every image.
+        undistort_maps: optional ``(map1, map2)`` for ``cv2.remap`` applied to every image (and,
+            nearest-neighbour, to the depth maps), e.g.
+            :meth:`metricslam.calibration.Calibration.undistort_maps`.
     """
 
     name: str
@@ -128,6 +130,10 @@ class FileSequence:
         depth = None
         if self.depth_paths is not None and self.depth_paths[index] is not None:
             depth = load_depth_png(self.depth_paths[index], self.depth_scale_per_m)
+            if self.undistort_maps is not None:  # keep the ground truth registered to the image
+                import cv2
+
+                depth = cv2.remap(depth, *self.undistort_maps, interpolation=cv2.INTER_NEAREST)
         return Frame(
             index=index,
             t_ns=int(self.stamps_ns[index]),

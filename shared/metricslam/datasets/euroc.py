@@ -11,7 +11,8 @@ Layout (``ROOT`` is the sequence folder holding ``mav0/``, or ``mav0`` itself)::
     mav0/state_groundtruth_estimate0/data.csv  t_ns, p_RS_R (xyz), q_RS (w x y z), …
 
 Images are undistorted on load (``undistort=True``, same K), so ``camera`` is an exact pinhole
-model. Ground truth ``T_world_body`` is interpolated to each image time (linear position, slerp
+model; ``sensor.yaml`` is read by :mod:`metricslam.calibration` (radial-tangential or
+equidistant distortion), and ``calibration=`` (``run --calib``) replaces its intrinsics. Ground truth ``T_world_body`` is interpolated to each image time (linear position, slerp
 rotation) and composed ``T_world_cam = T_world_body @ T_body_cam``. Frames outside the ground-truth
 time span are dropped (``trim_to_groundtruth=True``) so every frame has a pose. Stereo (cam1) is
 not rectified in EuRoC and is not read.
@@ -24,15 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from metricslam.camera import PinholeCamera
-from metricslam.datasets._common import FileSequence, read_float_fields
-from metricslam.errors import (
-    CalibrationError,
-    CameraError,
-    DatasetError,
-    GeometryError,
-    TrajectoryError,
+from metricslam.calibration import (
+    Calibration,
+    calibration_from_document,
+    camera_and_maps,
+    numbers,
+    read_yaml_document,
 )
+from metricslam.datasets._common import FileSequence, image_size, read_float_fields
+from metricslam.errors import CalibrationError, DatasetError, GeometryError, TrajectoryError
 
 log = logging.getLogger(__name__)
 
@@ -46,50 +47,17 @@ def mav0_dir(root: Path) -> Path:
     raise DatasetError("not an EuRoC folder: expected mav0/cam0/ inside", root)
 
 
-def read_sensor_yaml(path: Path) -> tuple[np.ndarray, tuple[int, int], np.ndarray, np.ndarray]:
-    """``sensor.yaml`` -> ``(K (3,3), (width, height), distortion (4|5,), T_body_cam (4,4))``."""
-    import yaml
-
-    if not path.is_file():
-        raise CalibrationError("camera sensor.yaml does not exist", path)
-    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("%"))
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        raise CalibrationError(f"not valid YAML: {exc}", path, None if line is None else line + 1) from None
-    if not isinstance(doc, dict):
-        raise CalibrationError("expected a YAML mapping with intrinsics, resolution, T_BS", path)
-
-    def numbers(key: str, n: int | tuple[int, ...]) -> np.ndarray:
-        val = doc.get(key)
-        if isinstance(val, dict):
-            val = val.get("data")
-        ns = (n,) if isinstance(n, int) else n
-        try:
-            arr = np.asarray(val, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            raise CalibrationError(f"'{key}' must be a list of numbers, got {val!r}", path) from None
-        if arr.size not in ns or not np.all(np.isfinite(arr)):
-            raise CalibrationError(f"'{key}' must hold {' or '.join(map(str, ns))} finite numbers, "
-                                   f"got {arr.size}", path)
-        return arr
-
-    model = doc.get("camera_model", "pinhole")
-    if model != "pinhole":
-        raise CalibrationError(f"camera_model {model!r} is not supported; expected pinhole", path)
-    fu, fv, cu, cv = numbers("intrinsics", 4)
-    w, h = (int(v) for v in numbers("resolution", 2))
-    dist = numbers("distortion_coefficients", (4, 5)) if "distortion_coefficients" in doc else np.zeros(4)
-    dm = doc.get("distortion_model", "radial-tangential")
-    if dm not in ("radial-tangential", "radtan", "plumb_bob", "none"):
-        raise CalibrationError(f"distortion_model {dm!r} is not supported; expected radial-tangential", path)
-    T = numbers("T_BS", 16).reshape(4, 4)
+def read_sensor_yaml(path: Path) -> tuple[Calibration, np.ndarray]:
+    """``sensor.yaml`` -> ``(calibration, T_body_cam (4, 4))``: intrinsics, resolution and
+    distortion through :func:`metricslam.calibration.calibration_from_document` (the one
+    calibration loader), ``T_BS`` here."""
+    doc = read_yaml_document(path)
+    calib = calibration_from_document(doc, path)
+    T = numbers(doc, "T_BS", 16, path).reshape(4, 4)
     R = T[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise CalibrationError("T_BS is not a rigid 4x4 transform", path)
-    K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
-    return K, (w, h), dist, T
+    return calib, T
 
 
 def read_image_list(path: Path, image_dir: Path) -> tuple[np.ndarray, list[Path]]:
@@ -168,18 +136,20 @@ class EuRoC(FileSequence):
         root: the sequence folder (holding ``mav0/``) or the ``mav0`` folder.
         undistort: remap images to the undistorted pinhole model with the same K.
         trim_to_groundtruth: drop frames outside the ground-truth time span (when GT exists).
+        calibration: intrinsics and distortion to use instead of ``sensor.yaml``'s (``run
+            --calib``); ``T_BS`` still comes from ``sensor.yaml``.
     """
 
-    def __init__(self, root: str | Path, undistort: bool = True, trim_to_groundtruth: bool = True) -> None:
+    def __init__(self, root: str | Path, undistort: bool = True, trim_to_groundtruth: bool = True,
+                 calibration: Calibration | None = None) -> None:
         root = Path(root)
         mav0 = mav0_dir(root)
         cam = mav0 / "cam0"
-        K, (w, h), dist, T_body_cam = read_sensor_yaml(cam / "sensor.yaml")
-        try:
-            camera = PinholeCamera.from_K(K, w, h)
-        except CameraError as exc:
-            raise CalibrationError(f"invalid intrinsics: {exc}", cam / "sensor.yaml") from exc
+        sensor_calib, T_body_cam = read_sensor_yaml(cam / "sensor.yaml")
         stamps, files = read_image_list(cam / "data.csv", cam / "data")
+        if calibration is not None:
+            log.info("%s: intrinsics from %s instead of sensor.yaml", root, calibration.source)
+            sensor_calib = calibration.for_image(*image_size(files[0]))
         poses = None
         gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
         if gt_path.is_file():
@@ -193,15 +163,13 @@ class EuRoC(FileSequence):
                 files = [f for f, keep in zip(files, inside) if keep]
             if trim_to_groundtruth or inside.all():
                 poses = interpolate_poses(t_gt, T_world_body, stamps) @ T_body_cam
-        maps = None
-        if undistort and np.any(dist != 0):
-            import cv2
-
-            maps = cv2.initUndistortRectifyMap(K, dist, None, K, (w, h), cv2.CV_32FC1)
+        camera, maps = camera_and_maps(sensor_calib, sensor_calib.camera.width_px,
+                                       sensor_calib.camera.height_px)
         super().__init__(
             name=root.name if root.name != "mav0" else root.parent.name, camera=camera,
             baseline_m=None, image_paths=files, stamps_ns=stamps, poses_gt=poses, color=False,
-            undistort_maps=maps,
+            undistort_maps=maps if undistort else None,
         )
         self.T_body_cam = T_body_cam
-        self.distortion = dist
+        self.calibration = sensor_calib
+        self.distortion = np.asarray(sensor_calib.distortion_coefficients)

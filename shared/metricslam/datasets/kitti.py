@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from metricslam.calibration import Calibration, camera_and_maps
 from metricslam.camera import PinholeCamera
 from metricslam.datasets._common import (
     NOMINAL_PERIOD_NS,
@@ -105,6 +106,9 @@ class KittiOdometry(FileSequence):
         poses_file: ground-truth pose file; default: found as described in the module doc.
         load_right: load ``image_1`` as the right stereo image when it exists.
         load_depth: load ``depth_0`` PNGs into ``Frame.depth_m`` when they exist.
+        calibration: left-camera intrinsics (and distortion, undone at load) to use instead of
+            P0 (``run --calib``, :mod:`metricslam.calibration`); the stereo baseline still
+            comes from P1.
     """
 
     def __init__(
@@ -113,6 +117,7 @@ class KittiOdometry(FileSequence):
         poses_file: str | Path | None = None,
         load_right: bool = True,
         load_depth: bool = True,
+        calibration: Calibration | None = None,
     ) -> None:
         seq_dir = Path(seq_dir)
         if not seq_dir.is_dir():
@@ -122,10 +127,15 @@ class KittiOdometry(FileSequence):
         calib = read_kitti_calib(calib_path)
         w, h = image_size(images[0])
         P0 = calib["P0"]
-        try:
-            camera = PinholeCamera.from_K(P0, w, h)
-        except CameraError as exc:
-            raise CalibrationError(f"P0 is not a valid camera: {exc}", calib_path) from exc
+        maps = None
+        if calibration is not None:
+            log.info("%s: intrinsics from %s instead of calib.txt P0", seq_dir, calibration.source)
+            camera, maps = camera_and_maps(calibration, w, h)
+        else:
+            try:
+                camera = PinholeCamera.from_K(P0, w, h)
+            except CameraError as exc:
+                raise CalibrationError(f"P0 is not a valid camera: {exc}", calib_path) from exc
         times = seq_dir / "times.txt"
         if times.is_file():
             stamps = read_times(times, len(images))
@@ -161,7 +171,7 @@ class KittiOdometry(FileSequence):
         super().__init__(
             name=seq_dir.name, camera=camera, baseline_m=baseline_m, image_paths=images,
             stamps_ns=stamps, right_paths=right_paths, depth_paths=depth_paths,
-            depth_scale_per_m=256.0, poses_gt=poses, color=False,
+            depth_scale_per_m=256.0, poses_gt=poses, color=False, undistort_maps=maps,
         )
         self.calib = calib
         self.seq_dir = seq_dir

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from metricslam.calibration import Calibration, camera_and_maps
 from metricslam.camera import PinholeCamera
 from metricslam.datasets._common import (
     NOMINAL_PERIOD_NS,
@@ -86,9 +87,11 @@ class KittiRawDepth(FileSequence):
     Args:
         folder: the dataset folder (contains ``image_02/``, ``depth_02/``, ``calib.txt``).
         camera_key: ``"02"`` (left colour) or ``"03"``; selects ``image_XX``/``depth_XX``.
+        calibration: intrinsics to use instead of ``calib.txt``'s (:mod:`metricslam.calibration`).
     """
 
-    def __init__(self, folder: str | Path, camera_key: str = "02") -> None:
+    def __init__(self, folder: str | Path, camera_key: str = "02",
+                 calibration: Calibration | None = None) -> None:
         folder = Path(folder)
         if not folder.is_dir():
             raise DatasetError("KITTI raw depth folder does not exist", folder)
@@ -96,10 +99,14 @@ class KittiRawDepth(FileSequence):
         calib_path = folder / "calib.txt"
         K = read_raw_calib(calib_path, camera_key)
         w, h = image_size(images[0])
-        try:
-            camera = PinholeCamera.from_K(K, w, h)
-        except CameraError as exc:
-            raise CalibrationError(f"invalid intrinsics: {exc}", calib_path) from exc
+        maps = None
+        if calibration is not None:
+            camera, maps = camera_and_maps(calibration, w, h)
+        else:
+            try:
+                camera = PinholeCamera.from_K(K, w, h)
+            except CameraError as exc:
+                raise CalibrationError(f"invalid intrinsics: {exc}", calib_path) from exc
         depth_dir = folder / f"depth_{camera_key}"
         if not depth_dir.is_dir():
             raise DatasetError("depth folder does not exist (uint16 PNGs, metres × 256)", depth_dir)
@@ -111,5 +118,6 @@ class KittiRawDepth(FileSequence):
         super().__init__(
             name=folder.name, camera=camera, baseline_m=None, image_paths=images,
             stamps_ns=stamps, depth_paths=depth_paths, depth_scale_per_m=256.0, color=True,
+            undistort_maps=maps,
         )
         self.folder = folder

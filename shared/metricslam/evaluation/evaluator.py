@@ -1,7 +1,8 @@
 """Evaluate one estimated trajectory against ground truth: KITTI devkit segments, ATE, RPE.
 
 Trajectories are ``T_world_cam`` (N, 4, 4). KITTI-format pairs must have one pose per frame;
-time-stamped (TUM) pairs are first associated by timestamp. See ``docs/evaluation.md``.
+time-stamped (TUM) estimates are first associated by timestamp with time-stamped ground truth
+(TUM, EuRoC, or KITTI with its ``times.txt``: :mod:`.ground_truth`). See ``docs/evaluation.md``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from metricslam.errors import EvaluationError, TrajectoryError
 from metricslam.evaluation.associate import DEFAULT_MAX_DIFF_NS, associate
 from metricslam.evaluation.ate import AteResult, absolute_trajectory_error
+from metricslam.evaluation.ground_truth import read_ground_truth
 from metricslam.evaluation.kitti_metric import (
     SHORT_LENGTHS_M,
     SegmentErrors,
@@ -106,13 +108,14 @@ def evaluate_timed(
     name: str = "sequence",
     max_diff_ns: int = DEFAULT_MAX_DIFF_NS,
     rpe_delta_frames: int = 1,
+    notes: list[str] | None = None,
 ) -> SequenceEvaluation:
     """Associate by nearest timestamp, then :func:`evaluate_poses` on the matched pairs.
 
     Devkit segments then start every 10 *associated* frames (the devkit assumes 10 Hz).
     """
     i_gt, i_est = associate(t_ns_gt, t_ns_est, max_diff_ns)
-    notes = []
+    notes = list(notes or [])
     n_est = len(t_ns_est)
     if len(i_est) < n_est:
         notes.append(f"{n_est - len(i_est)} of {n_est} estimated poses had no ground truth within "
@@ -128,26 +131,42 @@ def evaluate_files(
     name: str | None = None,
     max_diff_ns: int = DEFAULT_MAX_DIFF_NS,
     rpe_delta_frames: int = 1,
+    gt_times: str | Path | None = None,
 ) -> SequenceEvaluation:
-    """Read two trajectory files (KITTI or TUM, see :func:`read_trajectory`) and evaluate them.
+    """Evaluate an estimate file against ground truth.
+
+    The estimate is a KITTI or TUM file (:func:`read_trajectory`, ``fmt``); the ground truth a
+    KITTI, TUM or EuRoC file or a dataset folder (:func:`~metricslam.evaluation.ground_truth.read_ground_truth`;
+    ``gt_times``: a KITTI ``times.txt`` for a KITTI pose file). A KITTI estimate pairs with
+    per-frame (KITTI) ground truth line by line; a TUM estimate with time-stamped ground truth by
+    nearest timestamp.
 
     Raises:
-        TrajectoryError: a file is malformed, or one has timestamps and the other not.
+        TrajectoryError: a file is malformed, or the two cannot be paired (what to pass instead
+            is in the message).
         EvaluationError: the pair cannot be evaluated (pose counts differ, too short, ...).
     """
     name = name or Path(est_path).stem
-    t_gt, T_gt = read_trajectory(gt_path, fmt)
-    t_est, T_est = read_trajectory(est_path, fmt)
-    if (t_gt is None) != (t_est is None):
-        raise TrajectoryError(
-            "one file is KITTI format (no timestamps) and the other TUM format; give both in "
-            "the same format", est_path,
-        )
-    if t_gt is None:
-        if T_gt.shape[0] != T_est.shape[0]:
+    t_est, T_est = read_trajectory(est_path, "auto" if fmt == "euroc" else fmt)
+    gt = read_ground_truth(gt_path, fmt, times=gt_times)
+    if t_est is None:
+        if not gt.per_frame:
+            raise TrajectoryError(
+                f"the estimate is a KITTI file (no timestamps) but the ground truth {gt_path} is "
+                "time-stamped; give both in the same format: write the estimate with "
+                "`metricslam run --format tum`", est_path,
+            )
+        if gt.T_world_cam.shape[0] != T_est.shape[0]:
             raise TrajectoryError(
                 f"the estimate has {T_est.shape[0]} poses but the ground truth {gt_path} has "
-                f"{T_gt.shape[0]}; KITTI-format files must have one line per frame", est_path,
+                f"{gt.T_world_cam.shape[0]}; KITTI-format files must have one line per frame", est_path,
             )
-        return evaluate_poses(T_gt, T_est, name, rpe_delta_frames)
-    return evaluate_timed(t_gt, T_gt, t_est, T_est, name, max_diff_ns, rpe_delta_frames)
+        return evaluate_poses(gt.T_world_cam, T_est, name, rpe_delta_frames, gt.notes)
+    if gt.t_ns is None:
+        raise TrajectoryError(
+            f"the estimate is time-stamped (TUM) but the ground truth {gt_path} is a KITTI file "
+            "without timestamps; give both in the same format, or add the sequence's times.txt "
+            "(--gt-times), or pass the sequence folder as --gt", est_path,
+        )
+    return evaluate_timed(gt.t_ns, gt.T_world_cam, t_est, T_est, name, max_diff_ns, rpe_delta_frames,
+                          gt.notes)

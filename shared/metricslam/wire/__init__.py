@@ -15,8 +15,10 @@ from metricslam.wire.codec import (
     decode_as,
     encode,
 )
+from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
 
 __all__ = [
-    "CalibrationMessage", "FrameMessage", "KeyframeMessage", "Message", "PoseMessage",
+    "CalibrationMessage", "FrameMessage", "KeyframeDepthMessage", "KeyframeMessage", "LandmarksMessage",
+    "Message", "PoseMessage",
     "StatusMessage", "TrajectoryMessage", "decode", "decode_as", "encode",
 ]

@@ -279,6 +279,10 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.KIND: cls for cls in (FrameMessage, CalibrationMessage, PoseMessage, KeyframeMessage,
                               StatusMessage, TrajectoryMessage)
 }
+# map messages live in their own module (it builds on Message, so it is imported here, last)
+from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage  # noqa: E402
+
+MESSAGE_TYPES.update({cls.KIND: cls for cls in (LandmarksMessage, KeyframeDepthMessage)})
 
 
 def encode(message: Message) -> bytes:

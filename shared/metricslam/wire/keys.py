@@ -8,6 +8,10 @@ Per camera ``<camera_id>``::
     metricslam/<camera_id>/keyframe     out  KeyframeMessage, one per new keyframe
     metricslam/<camera_id>/status       out  StatusMessage, periodically
     metricslam/<camera_id>/trajectory   queryable -> TrajectoryMessage (whole current trajectory)
+    metricslam/<camera_id>/path         out  TrajectoryMessage, whenever the optimized trajectory
+                                             changed (a new keyframe or a global solve)
+    metricslam/<camera_id>/landmarks    out  LandmarksMessage, the local window's after a keyframe
+    metricslam/<camera_id>/keyframe_depth out KeyframeDepthMessage, each answered depth request
     metricslam/_service/health          queryable -> JSON of the SLAM service's readiness
 
 Camera ids are one key chunk: letters, digits, ``-``, ``_`` and ``.``; they may not start with
@@ -23,7 +27,8 @@ from metricslam.errors import CodecError
 PREFIX = "metricslam"
 HEALTH_KEY = f"{PREFIX}/_service/health"
 _CAMERA_ID_RE = re.compile(r"^[A-Za-z0-9.\-][A-Za-z0-9_.\-]{0,63}$")
-TOPICS = ("frame", "calibration", "pose", "keyframe", "status", "trajectory")
+TOPICS = ("frame", "calibration", "pose", "keyframe", "status", "trajectory", "path", "landmarks",
+          "keyframe_depth")
 
 
 def check_camera_id(camera_id: str) -> str:

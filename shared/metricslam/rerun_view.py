@@ -1,4 +1,8 @@
-"""Optional live view with rerun-sdk (``viz`` extra; imported lazily, only when asked for).
+"""Rerun view of SLAM sessions (rerun-sdk, the optional ``viz`` extra, imported only when a
+:class:`RerunView` is made): the SLAM service's live view (``slam-service --rerun``) and the
+offline recording of ``metricslam run --rerun out.rrd`` use this one class, so both recordings
+hold the same entities. It lives in the core (it needs only core types and rerun) so the CLI's
+offline run does not import a service.
 
 One recording per camera. Entities (world = the SLAM world frame, camera frame x right,
 y down, z forward as in docs/conventions.md)::
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -37,7 +42,8 @@ class RerunView:
         try:
             import rerun as rr
         except ImportError:
-            raise ConfigError("--rerun needs rerun-sdk: pip install 'metricslam[viz]'") from None
+            raise ConfigError("--rerun needs rerun-sdk, the optional viz extra: pip install -e '.[viz]' "
+                              "(or pip install 'metricslam[viz]')") from None
         self._rr = rr
         self._rec = rr.RecordingStream(application_id)
         if target == "web":
@@ -45,6 +51,7 @@ class RerunView:
             rr.serve_web_viewer(connect_to=uri, open_browser=False)
             log.info("rerun web viewer serving %s", uri)
         elif target.endswith(".rrd"):
+            Path(target).parent.mkdir(parents=True, exist_ok=True)
             self._rec.save(target)
         else:
             raise ConfigError(f"--rerun must be 'web' or a path ending in .rrd, got {target!r}")
@@ -79,13 +86,19 @@ class RerunView:
             if points is not None and len(points):
                 rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
 
+    def attach(self, session: object) -> None:
+        """Subscribe to a session's back-end events (``session.backend.events``): each keyframe's
+        depth map (:class:`~metricslam.slam.events.ScaleMeasured`) goes to :meth:`log_depth`.
+        A session without a back end (``vo_only``) has no depth maps to show."""
+        backend = getattr(session, "backend", None)
+        if backend is not None and hasattr(backend, "events"):
+            backend.events.subscribe(self._on_scale_measured, ScaleMeasured)
+
     def observing(self, factory):
-        """Wrap a session factory: each new session's back end events feed :meth:`log_depth`."""
+        """Wrap a session factory so every new session is :meth:`attach`-ed."""
         def make(camera_id, camera):
             session = factory(camera_id, camera)
-            backend = getattr(session, "backend", None)
-            if backend is not None and hasattr(backend, "events"):
-                backend.events.subscribe(self._on_scale_measured, ScaleMeasured)
+            self.attach(session)
             return session
         return make
 

@@ -1,0 +1,283 @@
+"""ROS 2 over Zenoh for the SLAM service (``SLAM_ROS2=1``): no ROS install needed.
+
+Speaks rmw_zenoh's conventions (:mod:`metricslam.ros2.rmw_zenoh`: data key expressions, node and
+endpoint liveliness tokens, the per-sample attachment), so a node on ``rmw_zenoh_cpp`` in the
+same ``ROS_DOMAIN_ID`` sees ordinary topics. Per camera ``<cam>`` (its id as a ROS name token):
+
+out (CDR, reliable, volatile, keep-last 10)::
+
+    /metricslam/<cam>/odom       nav_msgs/Odometry        every TRACKING frame
+    /metricslam/<cam>/pose       geometry_msgs/PoseStamped every TRACKING frame
+    /metricslam/<cam>/path       nav_msgs/Path            the optimized trajectory, on change
+    /metricslam/<cam>/landmarks  sensor_msgs/PointCloud2  the local window's landmarks, per keyframe
+
+in::
+
+    /metricslam/<cam>/image        sensor_msgs/Image (mono8, rgb8, bgr8; rectified)
+    /metricslam/<cam>/camera_info  sensor_msgs/CameraInfo (K; D must be zero)
+
+Frames: ``header.frame_id = <cam>/world`` (the SLAM world: the first camera pose's optical
+frame), ``child_frame_id = <cam>/camera_optical`` (x right, y down, z forward). Images are refused
+(and counted; ``…/status`` and the log say why) until that camera's CameraInfo arrived. The
+bridge translates the native messages the service publishes (:meth:`Ros2Bridge.forward`); it owns
+no SLAM state.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+import zenoh
+
+from metricslam.camera import PinholeCamera
+from metricslam.errors import CodecError
+from metricslam.ros2 import messages
+from metricslam.ros2.rmw_zenoh import (
+    PUBLISHER, SUBSCRIPTION, Node, Qos, attachment, frame_ids, gid, ros_token, topic_key,
+)
+from metricslam.ros2.typestore import (
+    CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, dds_type_name, deserialize, serialize,
+)
+from metricslam.slam.types import TrackingState
+from metricslam.wire import keys
+from metricslam.wire.codec import FrameMessage, Message, PoseMessage, StatusMessage, TrajectoryMessage, encode
+from metricslam.wire.map_messages import LandmarksMessage
+
+log = logging.getLogger(__name__)
+QOS = Qos()  # reliable, volatile, keep-last 10: "::,10:,:,:,,"
+#: variance (m², rad², (m/s)², …) meaning "no information": a fusing filter gives it no weight
+UNKNOWN_VARIANCE = 1e6
+
+
+def odometry_covariances(scale_established: bool, position_sigma_m: float,
+                         rotation_sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose_covariance, twist_covariance)`` (6, 6) for ``nav_msgs/Odometry``.
+
+    The SLAM computes no per-frame marginal covariance, so the pose gets a NOMINAL diagonal
+    (``position_sigma_m``², ``rotation_sigma_rad``²), with position variance
+    :data:`UNKNOWN_VARIANCE` until learned scale made the positions metric; the twist is not
+    estimated (zero) and gets :data:`UNKNOWN_VARIANCE` throughout.
+    """
+    var_p = position_sigma_m ** 2 if scale_established else UNKNOWN_VARIANCE
+    pose_cov = np.diag([var_p] * 3 + [rotation_sigma_rad ** 2] * 3)
+    return pose_cov, np.eye(6) * UNKNOWN_VARIANCE
+
+
+class RosPublisher:
+    """One ROS 2 publisher: a Zenoh publisher on the topic's key, its ``MP`` liveliness token,
+    its GID, and the sequence number each sample's attachment carries (from 1)."""
+
+    def __init__(self, session: zenoh.Session, node: Node, entity_id: int, topic: str, msgtype: str) -> None:
+        self.topic, self.msgtype = topic, msgtype
+        self.key = topic_key(node.domain_id, topic, msgtype)
+        self.token_key = node.endpoint_token(entity_id, PUBLISHER, topic, msgtype, QOS)
+        self.gid = gid(self.token_key)
+        self._lock = threading.Lock()
+        self._sequence = 0
+        self._token = session.liveliness().declare_token(self.token_key)
+        self._publisher = session.declare_publisher(self.key)
+
+    def put(self, message: object) -> None:
+        payload = serialize(message)
+        with self._lock:
+            self._sequence += 1
+            self._publisher.put(payload, attachment=attachment(self._sequence, time.time_ns(), self.gid))
+
+    def close(self) -> None:
+        self._publisher.undeclare()
+        self._token.undeclare()
+
+
+class _CameraInput:
+    """Input state of one camera: its intrinsics (None until a CameraInfo arrived)."""
+
+    def __init__(self) -> None:
+        self.camera: PinholeCamera | None = None
+        self.images = 0
+        self.refused = 0
+        self.next_index = 0
+        self.last_note_s = -1e9
+
+
+class Ros2Bridge:
+    """The service's ROS 2 face (module docstring).
+
+    Args:
+        session: the service's open Zenoh session.
+        domain_id / node_name: ``ROS_DOMAIN_ID`` and the node the topics belong to.
+        position_sigma_m / rotation_sigma_rad: :func:`odometry_covariances`.
+        offer_frame: ``(camera_id, FrameMessage bytes)`` -> the camera's worker queue.
+        publish_native: ``(camera_id, topic, message)`` -> ``metricslam/<camera_id>/<topic>``
+            (for the ``…/status`` note while images are refused).
+        serves: whether this service instance handles a camera (its ``frame_key_expr``).
+    """
+
+    def __init__(self, session: zenoh.Session, domain_id: int, node_name: str,
+                 offer_frame: Callable[[str, bytes], None],
+                 publish_native: Callable[[str, str, Message], None],
+                 serves: Callable[[str], bool] = lambda camera_id: True,
+                 position_sigma_m: float = 0.5, rotation_sigma_rad: float = 0.02) -> None:
+        self.node = Node(domain_id=domain_id, zid=str(session.info.zid()), node_id=0, name=node_name)
+        self._session = session
+        self._offer_frame, self._publish_native, self._serves = offer_frame, publish_native, serves
+        self._sigmas = (position_sigma_m, rotation_sigma_rad)
+        self._lock = threading.Lock()
+        self._entity_ids = itertools.count(1)
+        self._outputs: dict[str, dict[str, RosPublisher]] = {}
+        self._inputs: dict[str, _CameraInput] = {}
+        self._tokens = [session.liveliness().declare_token(self.node.token())]
+        self.malformed = 0
+        self._subscribers = [
+            session.declare_subscriber(self._input_key("image", IMAGE), self._on_image),
+            session.declare_subscriber(self._input_key("camera_info", CAMERA_INFO), self._on_camera_info),
+        ]
+        log.info("ROS 2 bridge: node /%s on domain %d (zenoh session %s)", node_name, domain_id, self.node.zid)
+
+    def _input_key(self, leaf: str, msgtype: str) -> str:
+        # any camera, any version (type hash) of the type
+        return f"{self.node.domain_id}/metricslam/*/{leaf}/{dds_type_name(msgtype)}/*"
+
+    # -- outputs --------------------------------------------------------------------------------
+    def forward(self, camera_id: str, topic: str, message: Message) -> None:
+        """Publish the ROS 2 counterpart of a native message, if it has one (never raises)."""
+        try:
+            if isinstance(message, PoseMessage) and topic == "pose":
+                self._forward_pose(camera_id, message)
+            elif isinstance(message, TrajectoryMessage) and topic == "path":
+                out = self._camera_outputs(camera_id)
+                out["path"].put(messages.path(message.t_ns, message.T_world_cam,
+                                              int(message.t_ns[-1]) if len(message.t_ns) else 0,
+                                              frame_ids(camera_id)[0]))
+            elif isinstance(message, LandmarksMessage):
+                out = self._camera_outputs(camera_id)
+                out["landmarks"].put(messages.point_cloud2(message.points_world, message.t_ns,
+                                                           frame_ids(camera_id)[0]))
+        except Exception:  # noqa: BLE001 -- the ROS face must never disturb the native one
+            log.exception("ROS 2 publish of %s/%s failed", camera_id, topic)
+
+    def _forward_pose(self, camera_id: str, msg: PoseMessage) -> None:
+        if msg.state != TrackingState.TRACKING:
+            return  # initializing / lost / invalid frames carry no pose of their own
+        world, cam = frame_ids(camera_id)
+        out = self._camera_outputs(camera_id)
+        pose_cov, twist_cov = odometry_covariances(msg.scale_established, *self._sigmas)
+        out["odom"].put(messages.odometry(msg.T_world_cam, msg.t_ns, world, cam, pose_cov, twist_cov))
+        out["pose"].put(messages.pose_stamped(msg.T_world_cam, msg.t_ns, world))
+
+    def _camera_outputs(self, camera_id: str) -> dict[str, RosPublisher]:
+        with self._lock:
+            if camera_id not in self._outputs:
+                base = f"/metricslam/{ros_token(camera_id)}"
+                self._outputs[camera_id] = {
+                    leaf: RosPublisher(self._session, self.node, next(self._entity_ids), f"{base}/{leaf}", msgtype)
+                    for leaf, msgtype in (("odom", ODOMETRY), ("pose", POSE_STAMPED), ("path", PATH),
+                                          ("landmarks", POINT_CLOUD2))}
+            return self._outputs[camera_id]
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def _camera_input(self, key_expr: str) -> tuple[str, _CameraInput] | None:
+        parts = str(key_expr).split("/")
+        try:
+            camera_id = keys.check_camera_id(parts[2])
+        except (CodecError, IndexError):
+            self._count_malformed(f"ROS 2 input on an unusable key {key_expr!r}")
+            return None
+        if not self._serves(camera_id):
+            return None
+        with self._lock:
+            inp = self._inputs.get(camera_id)
+            if inp is None:
+                inp = self._inputs[camera_id] = _CameraInput()
+                base = f"/metricslam/{parts[2]}"
+                self._tokens += [self._session.liveliness().declare_token(self.node.endpoint_token(
+                    next(self._entity_ids), SUBSCRIPTION, f"{base}/{leaf}", msgtype, QOS))
+                    for leaf, msgtype in (("image", IMAGE), ("camera_info", CAMERA_INFO))]
+        return camera_id, inp
+
+    def _on_camera_info(self, sample: zenoh.Sample) -> None:
+        found = self._camera_input(str(sample.key_expr))
+        if found is None:
+            return
+        camera_id, inp = found
+        try:
+            camera = messages.camera_from_info(deserialize(sample.payload.to_bytes(), CAMERA_INFO))
+        except CodecError as exc:
+            self._count_malformed(str(exc))
+            if inp.camera is None:
+                self._note(camera_id, inp, f"CameraInfo refused: {exc}")
+            return
+        if inp.camera is None:
+            log.info("camera %s: intrinsics from sensor_msgs/CameraInfo: %s", camera_id, camera)
+        inp.camera = camera
+
+    def _on_image(self, sample: zenoh.Sample) -> None:
+        found = self._camera_input(str(sample.key_expr))
+        if found is None:
+            return
+        camera_id, inp = found
+        inp.images += 1
+        if inp.camera is None:
+            inp.refused += 1
+            self._note(camera_id, inp, f"waiting for sensor_msgs/CameraInfo on /metricslam/"
+                       f"{ros_token(camera_id)}/camera_info: {inp.refused} image(s) refused so far")
+            return
+        try:
+            msg = deserialize(sample.payload.to_bytes(), IMAGE)
+            frame = FrameMessage(camera_id=camera_id, frame_index=inp.next_index,
+                                 t_ns=max(messages.stamp_ns(msg.header), 0), camera=inp.camera,
+                                 t_sent_ns=time.time_ns(), image=messages.image_pixels(msg))
+        except (CodecError, ValueError) as exc:  # ValueError: image size != CameraInfo size
+            self._count_malformed(f"camera {camera_id}: sensor_msgs/Image refused: {exc}")
+            return
+        inp.next_index += 1
+        self._offer_frame(camera_id, encode(frame))
+
+    def _note(self, camera_id: str, inp: _CameraInput, text: str) -> None:
+        """Say why input is refused: in the log and on ``…/status`` (at most once a second)."""
+        now = time.monotonic()
+        if now - inp.last_note_s < 1.0:
+            return
+        inp.last_note_s = now
+        log.warning("camera %s: %s", camera_id, text)
+        self._publish_native(camera_id, "status", StatusMessage(
+            camera_id=camera_id, t_ns=time.time_ns(), frames_received=inp.images, frames_processed=0,
+            queue_drops=0, malformed=self.malformed, queue_depth=0, fps=0.0,
+            session_stats={"ros2_input": text}))
+
+    def _count_malformed(self, why: str) -> None:
+        self.malformed += 1
+        if self.malformed <= 5 or self.malformed % 100 == 0:
+            log.warning("ROS 2 input #%d dropped: %s", self.malformed, why)
+
+    # -- housekeeping ---------------------------------------------------------------------------
+    def stats(self) -> dict:
+        """For the service's health JSON."""
+        with self._lock:
+            cams = {cid: {"camera_info": inp.camera is not None, "images": inp.images,
+                          "refused_without_camera_info": inp.refused}
+                    for cid, inp in self._inputs.items()}
+            outputs = sorted(self._outputs)
+        return {"domain_id": self.node.domain_id, "node": self.node.name, "zid": self.node.zid,
+                "inputs": cams, "outputs": outputs, "malformed": self.malformed}
+
+    def close_inputs(self) -> None:
+        """Stop taking images (first step of the service's stop)."""
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers = []
+
+    def close(self) -> None:
+        """Undeclare everything (publishers, tokens); the session stays open."""
+        self.close_inputs()
+        with self._lock:
+            outputs = [p for pubs in self._outputs.values() for p in pubs.values()]
+            tokens, self._tokens, self._outputs = self._tokens, [], {}
+        for pub in outputs:
+            pub.close()
+        for token in tokens:
+            token.undeclare()

@@ -1,0 +1,110 @@
+"""Feed an :class:`~metricslam.ros2.mcap_log.McapLog` from a SLAM session as it runs.
+
+The session's own outputs only: each frame's :class:`PoseEstimate`, its keyframe images, the
+local window's landmarks, the optimized trajectory (:meth:`SlamSession.trajectory`) whenever it
+changed, and each keyframe's depth answer from the back end's typed events
+(:class:`~metricslam.slam.events.ScaleMeasured`) — never by wrapping the session's inputs.
+
+Example (what ``metricslam run SEQ --mcap run.mcap`` does)::
+
+    with McapLog("run.mcap", "cam0") as log:
+        recorder = SessionRecorder(log, pipeline)
+        for frame in frames:
+            recorder.after_frame(frame, pipeline.process(frame))
+        pipeline.close()
+        recorder.close()   # the final optimized path; closes the file
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from metricslam.datasets.base import Frame
+from metricslam.ros2.mcap_log import McapLog
+from metricslam.slam.events import LoopAccepted, ScaleMeasured, Solved, WarpApplied
+from metricslam.slam.types import PoseEstimate
+
+log = logging.getLogger(__name__)
+
+
+def window_landmarks_world(session: object) -> np.ndarray | None:
+    """(N, 3) depth-known landmarks of the session's local window in its world frame (the VO
+    world, which warps keep metric), or None when the session has no local VO (``.vo``)."""
+    vo = getattr(session, "vo", None)
+    if vo is None:
+        return None
+    with vo.window.lock:
+        lm_ids = np.array(list(vo.map.landmarks), dtype=np.int64)
+        _, points = vo.map.points_world(lm_ids, vo.keyframe_poses())
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3)
+
+
+def valid_trajectory(session: object) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_ns (N,), T_world_cam (N, 4, 4))`` of the frames of ``session.trajectory()`` that have
+    a pose (own or interpolated; placeholders left out)."""
+    kept = [e for e in session.trajectory() if getattr(e, "pose_valid", True)]
+    t_ns = np.array([e.t_ns for e in kept], dtype=np.int64)
+    T = np.array([e.T_world_cam for e in kept], dtype=np.float64).reshape(len(kept), 4, 4)
+    return t_ns, T
+
+
+class SessionRecorder:
+    """Writes one session's outputs to ``mcap_log``.
+
+    Args:
+        mcap_log: the file.
+        session: a :class:`~metricslam.slam.types.SlamSession`; its ``backend.events`` (if any)
+            supply depth maps and say when the optimized trajectory changed.
+    """
+
+    def __init__(self, mcap_log: McapLog, session: object) -> None:
+        self.log = mcap_log
+        self.session = session
+        self._path_dirty = threading.Event()
+        self._last_t_ns = 0
+        backend = getattr(session, "backend", None)
+        self._events = getattr(backend, "events", None)
+        if self._events is not None:
+            self._events.subscribe(self._on_depth, ScaleMeasured)
+            self._events.subscribe(self._on_change, Solved, WarpApplied, LoopAccepted)
+
+    def _on_depth(self, ev: ScaleMeasured) -> None:
+        if ev.inv_depth_map_per_m is not None:
+            self.log.keyframe_depth(ev.t_ns, ev.inv_depth_map_per_m)
+
+    def _on_change(self, ev: object) -> None:
+        self._path_dirty.set()
+
+    def after_frame(self, frame: Frame, est: PoseEstimate) -> None:
+        """Log one processed frame: its pose; at a keyframe its image and the window's
+        landmarks; the optimized path when a keyframe or a global solve changed it."""
+        self._last_t_ns = max(self._last_t_ns, int(est.t_ns))
+        self.log.pose(est.t_ns, est.T_world_cam)
+        if est.is_keyframe:
+            if frame.image is not None:
+                self.log.keyframe_image(est.t_ns, frame.image, frame.camera)
+            points = window_landmarks_world(self.session)
+            if points is not None:
+                self.log.landmarks(est.t_ns, points)
+            self._path_dirty.set()
+        if self._path_dirty.is_set():
+            self._path_dirty.clear()
+            self.log.path(est.t_ns, *valid_trajectory(self.session))
+
+    def finish(self) -> None:
+        """After the session closed: the final optimized path; stop listening to events."""
+        if self._events is not None:
+            self._events.unsubscribe(self._on_depth)
+            self._events.unsubscribe(self._on_change)
+        self.log.path(self._last_t_ns, *valid_trajectory(self.session))
+
+    def close(self) -> None:
+        """:meth:`finish`, then close the file (whatever happened: a run that failed half way
+        still leaves a readable file)."""
+        try:
+            self.finish()
+        finally:
+            self.log.close()
