@@ -13,18 +13,23 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-# Runtime install: the project (editable) and its runtime dependencies; no torch.
+# Extras per component (pyproject.toml). A bare `pip install -e .` is the core and
+# `metricslam run`; `make demo` also needs both services, the renderer and the plots.
+RUNTIME_EXTRAS := depth-service,slam-service,synth,plots
+# Tests need every extra: the runtime ones, the dev tools, training (torch CPU wheel, pinned), viz
+# (rerun-sdk, so the live-view recording test runs) and ros (rosbags, mcap: the ROS 2 bridge and
+# MCAP recording tests).
+DEV_EXTRAS := dev,$(RUNTIME_EXTRAS),train,viz,ros
+
+# Runtime install: the project (editable) and the runtime extras; no torch.
 $(STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e .
+	$(BIN)/pip install -q -e '.[$(RUNTIME_EXTRAS)]'
 	@touch $@
 
 install: $(STAMP)
 
-# Tests also need the dev tools, the training extra (torch CPU wheel, pinned) and the viz extra
-# (rerun-sdk, so the live-view recording test runs), and the ros extra (rosbags, mcap: the ROS 2
-# bridge and MCAP recording tests).
 $(VENV)/.installed-dev: $(STAMP) pyproject.toml
-	$(BIN)/pip install -q -e '.[dev,train,viz,ros]'
+	$(BIN)/pip install -q -e '.[$(DEV_EXTRAS)]'
 	@touch $@
 
 install-dev: $(VENV)/.installed-dev

@@ -43,7 +43,7 @@ from metricslam.errors import AlignmentError
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 
-METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
+METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 #: eval keys summarized over repeats (units in docs/evaluation.md)
 METRIC_KEYS = ("t_rel_pct", "r_rel_deg_per_100m", "ate_rmse_m", "ate_rmse_sim3_m", "scale_ratio",
                "scale_error_pct")

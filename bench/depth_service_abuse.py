@@ -41,8 +41,8 @@ import cv2
 import numpy as np
 
 from bench.machine import command_line, describe
-from metricslam_depth.process import ServiceProcess
 from metricslam_depth.settings import DepthServiceSettings
+from tests.depth_service_process import ServiceProcess
 
 FX_PX = 718.856
 MIB = 2**20

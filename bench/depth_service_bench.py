@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from bench.machine import command_line, describe
-from metricslam_depth.process import ServiceProcess
+from tests.depth_service_process import ServiceProcess
 
 FX_PX = 718.856
 

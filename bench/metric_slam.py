@@ -25,7 +25,7 @@ from pathlib import Path
 
 from bench.machine import command_line, describe, write_results
 
-METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
+METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 def end_errors(est_path: Path, gt_path: str) -> dict:

@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 from metricslam.evaluation.plots import top_view_axes  # noqa: E402
 from metricslam.trajectory.io import read_kitti_poses  # noqa: E402
 
-METRICSLAM = [sys.executable, "-m", "metricslam.cli.main"]
+METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 COLORS = {"gt": "k", "metric": "tab:blue", "noscale": "tab:gray", "noscale_sim3": "tab:orange"}
 FIGURES = ("trajectories", "scale", "error", "depth")
 LABELS = {"metric": "metricslam (learned scale, as run)", "noscale": "--no-scale, as run",

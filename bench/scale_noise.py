@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     if est is None:
         tmp = Path(tempfile.mkdtemp(prefix="scale_noise_"))
         est, stats = tmp / "vo.txt", tmp / "vo.json"
-        subprocess.run([sys.executable, "-m", "metricslam.cli.main", "run", str(args.seq), "--vo-only",
+        subprocess.run([sys.executable, "-m", "metricslam_cli.main", "run", str(args.seq), "--vo-only",
                         "--no-progress", "--out", str(est), "--json", str(stats)], check=True)
     drift = vo_drift(args.seq / "poses" / "00.txt", est, json.loads(stats.read_text())["keyframes"])
     nets = {}

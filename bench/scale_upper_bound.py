@@ -280,7 +280,7 @@ def run_one(seq: KittiOdometry, src: ReferenceDepthSource, live: bool) -> tuple[
 
 def evaluate(est_path: Path, gt: str) -> dict:
     out_json = est_path.with_suffix(".eval.json")
-    subprocess.run([sys.executable, "-m", "metricslam.cli.main", "eval", "--gt", gt, "--est", str(est_path),
+    subprocess.run([sys.executable, "-m", "metricslam_cli.main", "eval", "--gt", gt, "--est", str(est_path),
                     "--json", str(out_json)], check=True, capture_output=True)
     return json.loads(out_json.read_text())
 

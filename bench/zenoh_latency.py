@@ -26,10 +26,9 @@ import numpy as np
 
 from bench.machine import command_line
 from metricslam.datasets import open_sequence
-from metricslam_slam.client import FramePublisher, PoseRecorder
-from metricslam_slam.demo import free_port
-from metricslam_slam.launcher import Stack
-from metricslam_slam.replay import wait_for_service
+from metricslam_slam.supervisor.launcher import Stack, free_port
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder
+from metricslam_slam.tools.replay import wait_for_service
 from metricslam_slam.zenoh_config import open_client
 
 

@@ -1,4 +1,6 @@
-# Depth inference service: FastAPI + onnxruntime + the shipped ONNX models. No torch, no gtsam.
+# Depth inference service: FastAPI + onnxruntime + the shipped ONNX models.
+# Installs the core's base dependencies and the depth-service extra (pyproject.toml): no torch, no
+# zenoh, no renderer (numba, scikit-image); gtsam comes with the core's base set.
 # Serves the int8 depth_l3_int8.onnx by default; the float32 depth_l3.onnx is installed next to it
 # (DEPTH_MODEL_PATH=/usr/local/lib/python3.11/site-packages/metricslam/models/depth_l3.onnx).
 # Build from the repository root:  docker build -f deploy/depth.Dockerfile -t metricslam-depth .
@@ -7,16 +9,11 @@ FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /app
 
-# Only what the depth service imports (the project's full runtime set also pulls gtsam/zenoh).
-RUN pip install "numpy>=2.0,<3" "pydantic>=2.6" "pydantic-settings>=2.2" \
-        "opencv-python-headless>=4.9" "onnxruntime>=1.17" "fastapi>=0.110" \
-        "uvicorn[standard]>=0.29" "python-multipart>=0.0.9" "prometheus-client>=0.20" "tqdm>=4.66"
-
 COPY pyproject.toml README.md ./
 COPY shared/ shared/
 COPY services/ services/
 COPY training/metricslam_train/__init__.py training/metricslam_train/__init__.py
-RUN pip install --no-deps . && useradd --system --uid 10001 metricslam
+RUN pip install ".[depth-service]" && useradd --system --uid 10001 metricslam
 
 USER metricslam
 ENV DEPTH_HOST=0.0.0.0 DEPTH_PORT=8100 DEPTH_THREADS=1

@@ -1,4 +1,6 @@
-# SLAM service: Zenoh in/out, local VO + global Sim(3) graph (gtsam), HTTP depth client. No torch.
+# SLAM service: Zenoh in/out, local VO + global Sim(3) graph (gtsam), HTTP depth client.
+# Installs the core's base dependencies and the slam-service extra (pyproject.toml): no torch, no
+# FastAPI, no renderer (numba, scikit-image).
 # Build from the repository root:  docker build -f deploy/slam.Dockerfile -t metricslam-slam .
 FROM python:3.11-slim
 
@@ -9,11 +11,10 @@ COPY pyproject.toml README.md ./
 COPY shared/ shared/
 COPY services/ services/
 COPY training/metricslam_train/__init__.py training/metricslam_train/__init__.py
-# The runtime dependency set of pyproject.toml (no extras: torch lives only in [train]).
-RUN pip install . && useradd --system --uid 10001 metricslam
+RUN pip install ".[slam-service]" && useradd --system --uid 10001 metricslam
 
 USER metricslam
 ENV SLAM_ZENOH_ENDPOINT=tcp/zenoh:7447 SLAM_DEPTH_URL=http://depth-lb:8100
 HEALTHCHECK --interval=10s --timeout=5s --start-period=20s --retries=3 \
-    CMD ["python", "-m", "metricslam_slam.healthcheck"]
+    CMD ["python", "-m", "metricslam_slam.supervisor.healthcheck"]
 ENTRYPOINT ["metricslam", "slam-service"]

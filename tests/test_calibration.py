@@ -18,7 +18,7 @@ from metricslam.chessboard import board_points, calibrate_chessboard
 from metricslam.errors import CalibrationError
 from metricslam.geometry import so3
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 W, H = 640, 480
 K = np.array([[500.0, 0, 322.5], [0, 505.0, 236.0], [0, 0, 1]])
 RADTAN = (-0.21, 0.06, 0.001, -0.0008, 0.0)
@@ -154,7 +154,7 @@ def test_camera_refuses_to_start_without_intrinsics(tmp_path: Path) -> None:
 def test_camera_intrinsics_from_each_source(tmp_path: Path, caplog) -> None:
     import argparse
 
-    from metricslam.cli.camera_cmd import frame_calibration
+    from metricslam_cli.camera_cmd import frame_calibration
 
     def args(**kw):
         base = dict(calib=None, assume_fov=None, fx=None, fy=None, cx=None, cy=None)

@@ -24,7 +24,7 @@ from metricslam.evaluation import evaluate_files
 from metricslam.geometry import so3
 from metricslam.trajectory.io import ns_to_seconds_text, write_tum
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 TUM_T0_NS = 1_305_031_102_175_304_000   # a TUM-like epoch: stamps survive the seconds text exactly
 EUROC_T0_NS = 1_403_636_579_763_555_584
 #: VO preset of the footage (the copies would otherwise get the tum / euroc preset by layout)

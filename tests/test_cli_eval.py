@@ -17,7 +17,7 @@ SCRIPT = Path(sys.executable).parent / "metricslam"
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
-    cmd = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "metricslam.cli.main"]
+    cmd = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "metricslam_cli.main"]
     return subprocess.run(cmd + ["eval", *args], capture_output=True, text=True, timeout=120)
 
 

@@ -22,7 +22,7 @@ compose_spec = pytest.importorskip("compose_spec", reason="pip install compose-s
 
 from metricslam.slam.config_file import load_system_config  # noqa: E402
 from metricslam_depth.settings import DepthServiceSettings  # noqa: E402
-from metricslam_slam.settings import SlamServiceSettings  # noqa: E402
+from metricslam_slam.service.settings import SlamServiceSettings  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +82,26 @@ def test_builds_and_copy_sources_exist(compose: dict, repo_root: Path) -> None:
                 assert (repo_root / host).exists(), host
 
 
+@pytest.mark.parametrize(("dockerfile", "extra", "not_there"), [
+    ("depth.Dockerfile", "depth-service", ("eclipse-zenoh", "httpx")),
+    ("slam.Dockerfile", "slam-service", ("fastapi", "uvicorn")),
+])
+def test_images_install_their_component_extra(repo_root: Path, dockerfile: str, extra: str,
+                                               not_there: tuple[str, ...]) -> None:
+    """Each image installs the core's base dependencies plus its own extra, no package by hand;
+    neither carries torch, the renderer (numba, scikit-image), matplotlib nor the viewer."""
+    import tomllib
+
+    project = tomllib.loads((repo_root / "pyproject.toml").read_text())["project"]
+    text = (repo_root / "deploy" / dockerfile).read_text()
+    installs = [ln for ln in text.splitlines() if ln.startswith("RUN") and "pip install" in ln]
+    assert len(installs) == 1 and f'pip install ".[{extra}]"' in installs[0], installs
+    packages = [re.split(r"[\[<>=~! ;]", d, maxsplit=1)[0].lower()
+                for d in project["dependencies"] + project["optional-dependencies"][extra]]
+    for name in ("torch", "numba", "scikit-image", "matplotlib", "rerun-sdk", *not_there):
+        assert name not in packages, f"{dockerfile}: {name} would be installed"
+
+
 def test_environment_names_are_settings_fields(compose: dict) -> None:
     fields = {"SLAM_": set(SlamServiceSettings.model_fields), "DEPTH_": set(DepthServiceSettings.model_fields)}
     seen = 0
@@ -121,6 +141,6 @@ def test_health_replicas_and_load_balancer(compose: dict, repo_root: Path) -> No
 
 
 def test_slam_healthcheck_fails_without_a_router() -> None:
-    out = subprocess.run([sys.executable, "-m", "metricslam_slam.healthcheck", "--zenoh-endpoint",
+    out = subprocess.run([sys.executable, "-m", "metricslam_slam.supervisor.healthcheck", "--zenoh-endpoint",
                           "tcp/127.0.0.1:17499"], capture_output=True, timeout=60)
     assert out.returncode == 1

@@ -25,7 +25,7 @@ import yaml
 kv = pytest.importorskip("kubernetes_validate", reason="pip install kubernetes-validate (dev extra)")
 
 from metricslam_depth.settings import DepthServiceSettings  # noqa: E402
-from metricslam_slam.settings import SlamServiceSettings  # noqa: E402
+from metricslam_slam.service.settings import SlamServiceSettings  # noqa: E402
 
 #: the Kubernetes versions the manifests must be valid for: a conservative one and the newest
 #: the pinned kubernetes-validate ships schemas for

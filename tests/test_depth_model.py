@@ -11,7 +11,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from metricslam.cli.main import main
+from metricslam_cli.main import main
 from metricslam.depth import (
     DEFAULT_MODEL_PATH,
     FLOAT32_MODEL_PATH,
@@ -177,7 +177,7 @@ def test_torch_and_onnxruntime_agree(tmp_path):
 
 
 def test_core_depth_import_is_torch_free():
-    code = ("import sys, metricslam.depth, metricslam.cli.depth_cmd; "
+    code = ("import sys, metricslam.depth, metricslam_cli.depth_cmd; "
             "bad = [m for m in ('torch', 'zenoh', 'fastapi', 'httpx') if m in sys.modules]; print(bad)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

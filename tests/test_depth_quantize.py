@@ -8,9 +8,9 @@ import json
 import cv2
 import numpy as np
 import pytest
-from metricslam.cli.main import main
 from metricslam.datasets._common import load_image
 from metricslam.depth import DEFAULT_MODEL_PATH, FLOAT32_MODEL_PATH, DepthModel, ModelContract
+from metricslam_cli.main import main
 from metricslam.depth.quantize import (
     INT8_STATIC,
     _CalibrationReader,

@@ -25,8 +25,8 @@ from metricslam.errors import ConfigError
 from metricslam_depth.disclosure import public_contract
 from metricslam_depth.errors import RequestProblem
 from metricslam_depth.imaging import decode_image, image_size
-from metricslam_depth.process import ServiceProcess
 from metricslam_depth.settings import load_settings
+from tests.depth_service_process import ServiceProcess
 
 PORT_MAIN, PORT_UNREADY, PORT_OVERLOAD = 18101, 18102, 18103
 FX_PX = 718.856

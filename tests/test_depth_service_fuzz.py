@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from schemathesis import checks
 from schemathesis.generation import GenerationMode
 
-from metricslam_depth.process import ServiceProcess
+from tests.depth_service_process import ServiceProcess
 
 PORT_FUZZ = 18104
 

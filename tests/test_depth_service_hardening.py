@@ -21,7 +21,7 @@ import pytest
 
 from metricslam_depth.imaging import check_header
 from metricslam_depth.errors import RequestProblem
-from metricslam_depth.process import ServiceProcess
+from tests.depth_service_process import ServiceProcess
 
 PORT_HARD, PORT_BROKEN = 18110, 18111
 FX_PX = 718.856

@@ -19,7 +19,6 @@ import cv2
 import numpy as np
 import pytest
 from dataset_fixtures import CX, CY, FX, H, W
-from metricslam.cli.main import main as cli_main
 from metricslam.datasets import KittiOdometry
 from metricslam.datasets.frame_reader import FrameReader
 from metricslam.geometry import se3, so3
@@ -27,6 +26,7 @@ from metricslam.slam.pipeline import _fill_pose_gaps
 from metricslam.slam.types import PoseEstimate, TrackingState
 from metricslam.slam.vo.frame_check import usable_gray
 from metricslam.trajectory.io import read_kitti_poses, read_tum
+from metricslam_cli.main import main as cli_main
 
 PERIOD_NS = 100_000_000
 

@@ -13,12 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
-from metricslam.cli.main import main
 from metricslam.datasets import open_sequence
 from metricslam.trajectory.io import read_kitti_poses
+from metricslam_cli.main import main
 from tests.ros2_cdr import CdrReader
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 ENDPOINT = "tcp/127.0.0.1:17520"  # 17520: this module alone
 
 
@@ -128,10 +128,10 @@ def test_poses_records_a_live_mcap(synth_sequence, tmp_path: Path) -> None:
     over Zenoh, ``metricslam poses --mcap`` recording everything the service publishes; the ROS 2
     bridge is on, and its Path and PointCloud2 samples are decoded too."""
     from metricslam.slam.system_config import SystemConfig
-    from metricslam_slam.client import FramePublisher, query_health
-    from metricslam_slam.router import open_router
-    from metricslam_slam.service import SlamService
-    from metricslam_slam.settings import SlamServiceSettings
+    from metricslam_slam.service.settings import SlamServiceSettings
+    from metricslam_slam.service.slam_service import SlamService
+    from metricslam_slam.supervisor.router import open_router
+    from metricslam_slam.tools.client import FramePublisher, query_health
     from metricslam_slam.zenoh_config import open_client
 
     seq = open_sequence(synth_sequence(40, seed=3, path="loop"))

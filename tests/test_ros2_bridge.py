@@ -21,11 +21,11 @@ from metricslam.ros2.typestore import (
     CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, dds_type_name, deserialize, serialize, type_hash,
 )
 from metricslam.slam.system_config import SystemConfig
-from metricslam_slam.client import FramePublisher, PoseRecorder
-from metricslam_slam.ros2_bridge import UNKNOWN_VARIANCE, odometry_covariances
-from metricslam_slam.router import open_router
-from metricslam_slam.service import SlamService
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.service.ros2_bridge import UNKNOWN_VARIANCE, odometry_covariances
+from metricslam_slam.service.settings import SlamServiceSettings
+from metricslam_slam.service.slam_service import SlamService
+from metricslam_slam.supervisor.router import open_router
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder
 from metricslam_slam.zenoh_config import open_client
 from tests.ros2_cdr import CdrReader, camera_info_cdr, image_cdr
 

@@ -7,12 +7,12 @@ import json
 import os
 
 import pytest
-from metricslam.cli.main import main
 from metricslam.errors import ConfigError
 from metricslam.slam.config_file import load_system_config
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.vo.config import VOConfig
+from metricslam_cli.main import main
 from pydantic import ValidationError
 
 NO_ENV: dict[str, str] = {}
@@ -164,8 +164,8 @@ def test_deterministic_runs_give_the_same_trajectory_byte_for_byte(synth_sequenc
 def test_slam_service_takes_the_same_file_as_run(tmp_path, monkeypatch) -> None:
     """``metricslam slam-service --config`` / ``METRICSLAM_CONFIG`` load what ``run`` loads; only
     ``run``'s offline depth queue differs."""
-    from metricslam.cli import run_cmd, slam_service_cmd
-    from metricslam.cli.main import build_parser
+    from metricslam_cli import run_cmd, slam_service_cmd
+    from metricslam_cli.main import build_parser
 
     for name in [n for n in os.environ if n.startswith("METRICSLAM_")]:
         monkeypatch.delenv(name)

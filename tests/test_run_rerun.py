@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from metricslam.cli.main import main
 from metricslam.errors import ConfigError
+from metricslam_cli.main import main
 
 
 @pytest.mark.slow
@@ -32,7 +32,7 @@ def test_run_writes_a_recording_with_the_service_entities(shared_data: Path, tmp
 
 
 def test_missing_rerun_sdk_is_a_clear_error(monkeypatch) -> None:
-    from metricslam.cli.run_cmd import open_recording
+    from metricslam_cli.run_cmd import open_recording
 
     monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun -> ImportError
     with pytest.raises(ConfigError, match=r"viz extra.*pip install"):

@@ -68,7 +68,7 @@ def _check_consistent(stats: dict) -> None:
 
 
 def test_run_json_records_the_metric_scale(drive, tmp_path):
-    from metricslam.cli.main import main
+    from metricslam_cli.main import main
 
     stats_path = tmp_path / "stats.json"
     assert main(["run", str(drive), "--out", str(tmp_path / "est.txt"), "--json",

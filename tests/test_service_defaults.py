@@ -25,16 +25,16 @@ from metricslam.datasets import open_sequence
 from metricslam.endpoints import DEFAULT_DEPTH_URL, depth_url
 from metricslam.slam.system_config import SystemConfig
 from metricslam_depth.settings import DepthServiceSettings
-from metricslam_slam.client import FramePublisher, PoseRecorder, query_health
-from metricslam_slam.router import open_router
-from metricslam_slam.service import SlamService
-from metricslam_slam.sessions import IdentitySession
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.service.sessions import IdentitySession
+from metricslam_slam.service.settings import SlamServiceSettings
+from metricslam_slam.service.slam_service import SlamService
+from metricslam_slam.supervisor.router import open_router
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health
 from metricslam_slam.zenoh_config import open_client
 
 from child_process import interrupt_and_wait
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 ENDPOINT = "tcp/127.0.0.1:17480"
 DEAD_ENDPOINT = "tcp/127.0.0.1:17485"
 OUR_ENV = ("DEPTH_HOST", "DEPTH_PORT", "SLAM_DEPTH_URL", "SLAM_ZENOH_ENDPOINT", "METRICSLAM_CONFIG")

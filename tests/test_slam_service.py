@@ -18,11 +18,11 @@ from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.types import TrackingState
 from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, encode
-from metricslam_slam.client import FramePublisher, PoseRecorder, query_health, query_trajectory
-from metricslam_slam.router import open_router
-from metricslam_slam.service import SlamService
-from metricslam_slam.sessions import IdentitySession
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.service.sessions import IdentitySession
+from metricslam_slam.service.settings import SlamServiceSettings
+from metricslam_slam.service.slam_service import SlamService
+from metricslam_slam.supervisor.router import open_router
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health, query_trajectory
 from metricslam_slam.zenoh_config import open_client
 
 CAMERA = PinholeCamera(fx_px=100.0, fy_px=100.0, cx_px=31.5, cy_px=23.5, width_px=64, height_px=48)

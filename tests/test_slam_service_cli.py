@@ -16,14 +16,14 @@ import pytest
 from metricslam.errors import DepthSourceError
 from metricslam.slam.system_config import SystemConfig
 from metricslam.trajectory.io import read_tum
-from metricslam_slam.client import query_health
-from metricslam_slam.http_depth import HttpDepthSource
-from metricslam_slam.router import open_router
-from metricslam_slam.service import SlamService
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.service.http_depth import HttpDepthSource
+from metricslam_slam.service.settings import SlamServiceSettings
+from metricslam_slam.service.slam_service import SlamService
+from metricslam_slam.supervisor.router import open_router
+from metricslam_slam.tools.client import query_health
 from metricslam_slam.zenoh_config import open_client
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 ENDPOINT = "tcp/127.0.0.1:17460"
 
 
@@ -98,7 +98,7 @@ def test_replay_refuses_without_a_service(tmp_path: Path) -> None:
 
 
 def test_replay_publishes_a_folder(service, tmp_path: Path) -> None:
-    from metricslam_slam.client import PoseRecorder
+    from metricslam_slam.tools.client import PoseRecorder
 
     seq = _kitti_folder(tmp_path / "seq", n=5)
     client = open_client(ENDPOINT)

@@ -12,10 +12,10 @@ rr = pytest.importorskip("rerun", reason="rerun-sdk is the optional viz extra")
 
 from metricslam.datasets import open_sequence  # noqa: E402
 from metricslam.slam.system_config import SystemConfig  # noqa: E402
-from metricslam_slam.client import FramePublisher, PoseRecorder, query_health  # noqa: E402
-from metricslam_slam.router import open_router  # noqa: E402
-from metricslam_slam.service import SlamService  # noqa: E402
-from metricslam_slam.settings import SlamServiceSettings  # noqa: E402
+from metricslam_slam.service.settings import SlamServiceSettings  # noqa: E402
+from metricslam_slam.service.slam_service import SlamService  # noqa: E402
+from metricslam_slam.supervisor.router import open_router  # noqa: E402
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health  # noqa: E402
 from metricslam_slam.zenoh_config import open_client  # noqa: E402
 
 ENDPOINT = "tcp/127.0.0.1:17470"

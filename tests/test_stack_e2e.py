@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from metricslam.trajectory.io import read_kitti_poses
 from metricslam.datasets import open_sequence
-from metricslam_slam.client import PoseRecorder, query_trajectory
-from metricslam_slam.replay import replay_sequence
+from metricslam.trajectory.io import read_kitti_poses
+from metricslam_slam.tools.client import PoseRecorder, query_trajectory
+from metricslam_slam.tools.replay import replay_sequence
 from metricslam_slam.zenoh_config import open_client
 
 from child_process import interrupt_and_wait
@@ -36,7 +36,7 @@ SCALE_TOL_PCT = 20.0
 
 def _path_length_m(T: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 @pytest.fixture(scope="module")

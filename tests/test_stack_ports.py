@@ -14,9 +14,9 @@ import time
 
 import pytest
 from metricslam.errors import ServiceError
-from metricslam_slam.launcher import Child, Stack, free_port, port_problem, restart_delay_s
+from metricslam_slam.supervisor.launcher import Child, Stack, free_port, port_problem, restart_delay_s
 
-CLI = [sys.executable, "-m", "metricslam.cli.main"]
+CLI = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 @pytest.fixture()
@@ -71,7 +71,7 @@ def test_a_crashing_child_is_restarted_with_backoff(caplog):
     stack.children = [crasher]
     restarts: list[float] = []
     crasher.start()
-    with caplog.at_level(logging.WARNING, logger="metricslam_slam.launcher"):
+    with caplog.at_level(logging.WARNING, logger="metricslam_slam.supervisor.launcher"):
         worker = threading.Thread(target=stack.supervise,
                                   kwargs={"on_restart": lambda c: restarts.append(time.monotonic()),
                                           "poll_s": 0.02})

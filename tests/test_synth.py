@@ -9,16 +9,16 @@ import cv2
 import numpy as np
 import pytest
 
-from metricslam.cli.main import main as cli_main
 from metricslam.datasets.kitti import KittiOdometry, read_kitti_calib
 from metricslam.errors import SynthError, TrajectoryError
 from metricslam.geometry import so3
-from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 from metricslam.synth import SynthConfig, SynthScene, generate_sequence, kitti_like_camera
 from metricslam.synth import materials as mt
 from metricslam.synth import trajectory as trj
 from metricslam.synth import world as world_mod
 from metricslam.synth.photometric import PhotometricConfig
+from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
+from metricslam_cli.main import main as cli_main
 
 SMALL = (320, 96)
 

@@ -10,7 +10,6 @@ import pytest
 from pydantic import ValidationError
 
 from metricslam.camera import PinholeCamera
-from metricslam.cli.main import main
 from metricslam.datasets.base import Frame
 from metricslam.errors import ConfigError
 from metricslam.geometry import se3, sim3
@@ -19,6 +18,7 @@ from metricslam.slam.types import TrackingState
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.local_vo import LocalVO
 from metricslam.trajectory.io import read_kitti_poses
+from metricslam_cli.main import main
 
 CAM = PinholeCamera(fx_px=300.0, fy_px=300.0, cx_px=159.5, cy_px=119.5, width_px=320, height_px=240)
 

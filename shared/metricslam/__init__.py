@@ -1,8 +1,9 @@
 """metricslam — metrically-scaled monocular SLAM with learned scale factors.
 
 The core library (this package) is pure numpy/OpenCV/gtsam/onnxruntime: it never imports
-zenoh, FastAPI, httpx or torch. Services (``metricslam_depth``, ``metricslam_slam``) and
-training (``metricslam_train``) are thin adapters on top of it.
+zenoh, FastAPI, httpx or torch. Services (``metricslam_depth``, ``metricslam_slam``),
+training (``metricslam_train``) and the command line (``metricslam_cli``) are separate packages
+on top of it (docs/architecture.md).
 
 Conventions (frames, ``T_a_b``, tangent orders): ``docs/conventions.md``.
 """

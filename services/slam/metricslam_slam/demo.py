@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,12 +19,6 @@ from pathlib import Path
 import numpy as np
 
 from metricslam.errors import ServiceError
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass(frozen=True)
@@ -52,10 +45,10 @@ def run_demo(out_dir: Path, frames: int = 200, seed: int = 0, rate_hz: float = 1
     from metricslam.evaluation.plots import save_plot
     from metricslam.synth import generate_sequence
     from metricslam.trajectory.io import write_kitti_poses
-    from metricslam_slam.client import PoseRecorder, query_trajectory
-    from metricslam_slam.launcher import Stack
-    from metricslam_slam.recording import poses_in_order
-    from metricslam_slam.replay import replay_sequence, wait_for_service
+    from metricslam_slam.supervisor.launcher import Stack, free_port
+    from metricslam_slam.tools.client import PoseRecorder, query_trajectory
+    from metricslam_slam.tools.recording import poses_in_order
+    from metricslam_slam.tools.replay import replay_sequence, wait_for_service
     from metricslam_slam.zenoh_config import open_client
 
     out_dir.mkdir(parents=True, exist_ok=True)

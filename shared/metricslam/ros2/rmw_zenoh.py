@@ -20,7 +20,7 @@ Written from rmw_zenoh's design document (``docs/design.md`` of ros2/rmw_zenoh, 
   little-endian), source timestamp (int64 little-endian, ns since the UNIX epoch), the GID length
   (one byte, 16) and the 16-byte publisher GID.
 
-Pure string/byte functions; the Zenoh side is ``metricslam_slam.ros2_bridge``.
+Pure string/byte functions; the Zenoh side is ``metricslam_slam.service.ros2_bridge``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A Zenoh router for the local stack: a Python session in ``router`` mode.
 
 There is no ``zenohd`` binary on PyPI or Debian; a zenoh-python session opened in router mode
-routes between clients just the same. ``python -m metricslam_slam.router --listen EP`` runs one
+routes between clients just the same. ``python -m metricslam_slam.supervisor.router --listen EP`` runs one
 until SIGINT/SIGTERM (this is what ``metricslam up`` starts). In compose, the upstream
 ``eclipse/zenoh`` image plays this part.
 """

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_URL
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -76,10 +77,12 @@ def config_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    require("slam-service", command="slam-service")
+
     import signal
 
-    from metricslam_slam.service import SlamService
-    from metricslam_slam.settings import SlamServiceSettings
+    from metricslam_slam.service.settings import SlamServiceSettings
+    from metricslam_slam.service.slam_service import SlamService
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
                                                  "keyframe_images", "rerun", "frame_key_expr",

@@ -50,7 +50,7 @@ def write_poses(path: str | Path, fmt: str, poses: dict[int, PoseMessage],
 
 
 def write_mcap(path: str | Path, camera_id: str, recorder, trajectory: TrajectoryMessage | None = None) -> dict:
-    """Write what a :class:`~metricslam_slam.client.PoseRecorder` (made with ``map_topics=True``)
+    """Write what a :class:`~metricslam_slam.tools.client.PoseRecorder` (made with ``map_topics=True``)
     received as an MCAP file, the layout ``metricslam run --mcap`` writes: every pose, keyframe
     images (when the service attaches them: ``--keyframe-images``), keyframe depth maps,
     landmarks, every ``…/path`` update and, when given, ``trajectory`` as the final path.

@@ -16,21 +16,21 @@ from metricslam.errors import MetricSlamError
 
 #: subcommand name -> module path. Add a line when a command lands.
 COMMANDS: dict[str, str] = {
-    "depth": "metricslam.cli.depth_cmd",
-    "train": "metricslam.cli.train_cmd",
-    "export": "metricslam.cli.export_cmd",
-    "eval": "metricslam.cli.eval_cmd",
-    "synth": "metricslam.cli.synth_cmd",
-    "depth-service": "metricslam.cli.depth_service_cmd",
-    "run": "metricslam.cli.run_cmd",
-    "slam-service": "metricslam.cli.slam_service_cmd",
-    "up": "metricslam.cli.up_cmd",
-    "replay": "metricslam.cli.replay_cmd",
-    "poses": "metricslam.cli.poses_cmd",
-    "demo": "metricslam.cli.demo_cmd",
-    "camera": "metricslam.cli.camera_cmd",
-    "quantize": "metricslam.cli.quantize_cmd",
-    "calibrate": "metricslam.cli.calibrate_cmd",
+    "depth": "metricslam_cli.depth_cmd",
+    "train": "metricslam_cli.train_cmd",
+    "export": "metricslam_cli.export_cmd",
+    "eval": "metricslam_cli.eval_cmd",
+    "synth": "metricslam_cli.synth_cmd",
+    "depth-service": "metricslam_cli.depth_service_cmd",
+    "run": "metricslam_cli.run_cmd",
+    "slam-service": "metricslam_cli.slam_service_cmd",
+    "up": "metricslam_cli.up_cmd",
+    "replay": "metricslam_cli.replay_cmd",
+    "poses": "metricslam_cli.poses_cmd",
+    "demo": "metricslam_cli.demo_cmd",
+    "camera": "metricslam_cli.camera_cmd",
+    "quantize": "metricslam_cli.quantize_cmd",
+    "calibrate": "metricslam_cli.calibrate_cmd",
 }
 
 log = logging.getLogger("metricslam")

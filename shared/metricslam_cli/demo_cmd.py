@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam_cli.extras import require
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -28,6 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    require(*(() if args.no_scale else ("depth-service",)), "slam-service", "synth", "plots", command="demo")
+
     import tempfile
     from pathlib import Path
 

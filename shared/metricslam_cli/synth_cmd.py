@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.errors import SynthError
+from metricslam_cli.extras import require
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -45,6 +46,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    require("synth", command="synth")
+
     from metricslam.synth import SynthConfig, generate_sequence
     from metricslam.synth.photometric import PhotometricConfig
 

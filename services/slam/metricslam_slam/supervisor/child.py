@@ -1,4 +1,4 @@
-"""Exec a command that dies with its parent: ``python -m metricslam_slam.child PPID -- CMD...``.
+"""Exec a command that dies with its parent: ``python -m metricslam_slam.supervisor.child PPID -- CMD...``.
 
 Sets ``PR_SET_PDEATHSIG`` (Linux; survives ``execve``) and replaces itself with ``CMD``, so a
 child of ``metricslam up`` never outlives a launcher that was SIGKILLed. Done here rather than
@@ -18,7 +18,7 @@ _PR_SET_PDEATHSIG = 1
 
 def main(argv: list[str]) -> int:
     if len(argv) < 3 or argv[1] != "--":
-        print("usage: python -m metricslam_slam.child PARENT_PID -- CMD [ARGS...]", file=sys.stderr)
+        print("usage: python -m metricslam_slam.supervisor.child PARENT_PID -- CMD [ARGS...]", file=sys.stderr)
         return 2
     parent_pid = int(argv[0])
     try:

@@ -1,6 +1,6 @@
 """Container health check: exit 0 when the SLAM service answers ``metricslam/_service/health``.
 
-``python -m metricslam_slam.healthcheck [--zenoh-endpoint EP]`` (default: ``SLAM_ZENOH_ENDPOINT``).
+``python -m metricslam_slam.supervisor.healthcheck [--zenoh-endpoint EP]`` (default: ``SLAM_ZENOH_ENDPOINT``).
 """
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from metricslam_slam.launcher import slam_ready
-from metricslam_slam.settings import SlamServiceSettings
+from metricslam_slam.service.settings import SlamServiceSettings
+from metricslam_slam.supervisor.launcher import slam_ready
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,6 @@
 """``metricslam up``: the local stack as supervised child processes.
 
-Starts, in order, a Zenoh router (``python -m metricslam_slam.router``), the depth service
+Starts, in order, a Zenoh router (``python -m metricslam_slam.supervisor.router``), the depth service
 (``metricslam depth-service``) and the SLAM service (``metricslam slam-service``), waits until each
 is ready (router: TCP port open; depth: ``/readyz`` 200; SLAM: answers
 ``metricslam/_service/health``), prints where everything listens, then supervises: a child that
@@ -14,7 +14,7 @@ the readiness probes cannot tell our child from another process on the same port
 port would read as "ready" and the real child would crash and restart forever. A taken port is
 refused with :class:`~metricslam.errors.ServiceError` naming it and the flag that moves it.
 SIGINT/SIGTERM stop the children in reverse order (SIGTERM, then SIGKILL after a grace period).
-Children are started through ``metricslam_slam.child`` (``PR_SET_PDEATHSIG``) so they never
+Children are started through ``metricslam_slam.supervisor.child`` (``PR_SET_PDEATHSIG``) so they never
 outlive a killed launcher.
 """
 
@@ -65,7 +65,7 @@ class Child:
         if self.log_path:
             self._log_file = open(self.log_path, "ab")
             out = self._log_file
-        wrapped = [sys.executable, "-m", "metricslam_slam.child", str(os.getpid()), "--", *self.argv]
+        wrapped = [sys.executable, "-m", "metricslam_slam.supervisor.child", str(os.getpid()), "--", *self.argv]
         self.process = subprocess.Popen(wrapped, stdout=out, stderr=subprocess.STDOUT,
                                         stdin=subprocess.DEVNULL)
 
@@ -137,7 +137,7 @@ def _http_ready(url: str) -> bool:
 
 
 def slam_ready(endpoint: str) -> bool:
-    from metricslam_slam.client import query_health
+    from metricslam_slam.tools.client import query_health
     from metricslam_slam.zenoh_config import open_client
 
     try:
@@ -185,10 +185,12 @@ class Stack:
         zbind, _, zport = hostport.rpartition(":")
         zhost = "127.0.0.1" if zbind in ("0.0.0.0", "[::]") else zbind
         py = [sys.executable, "-m"]
-        cli = py + ["metricslam.cli.main"]
+        # the children are the `metricslam` commands an operator would run: a process boundary,
+        # not an import (the services floor never imports the CLI; pyproject import contracts)
+        cli = py + ["metricslam_cli.main"]
         self.depth_url = None if depth_port is None else depth_url(depth_host, depth_port)
         zsock = socket.SOCK_DGRAM if zproto in ("udp", "quic") else socket.SOCK_STREAM
-        self.children = [Child("zenoh-router", py + ["metricslam_slam.router", "--listen", zenoh_endpoint],
+        self.children = [Child("zenoh-router", py + ["metricslam_slam.supervisor.router", "--listen", zenoh_endpoint],
                                lambda: _port_open(zhost, int(zport)), zenoh_endpoint,
                                binds=[(zbind, int(zport), zsock,
                                        f"--zenoh-endpoint {zproto}/{zbind}:<PORT>")])]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -40,6 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    require("depth-service", command="depth-service")
+
     from metricslam_depth.server import serve
     from metricslam_depth.settings import load_settings
 

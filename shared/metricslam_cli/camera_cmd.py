@@ -20,6 +20,7 @@ import argparse
 import logging
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -93,13 +94,15 @@ def frame_calibration(args: argparse.Namespace, width_px: int, height_px: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    require("slam-service", command="camera")
+
     import signal
     import time
 
     import cv2
 
     from metricslam.errors import ServiceError
-    from metricslam_slam.client import FramePublisher
+    from metricslam_slam.tools.client import FramePublisher
     from metricslam_slam.zenoh_config import open_client
 
     check_intrinsics_flags(args)

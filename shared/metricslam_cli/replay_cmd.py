@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -42,9 +43,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    require("slam-service", command="replay")
+
     from metricslam.calibration import load_calibration
     from metricslam.datasets import open_sequence
-    from metricslam_slam.replay import replay_sequence, wait_for_service
+    from metricslam_slam.tools.replay import replay_sequence, wait_for_service
     from metricslam_slam.zenoh_config import open_client
 
     seq = open_sequence(args.seq_dir, calibration=load_calibration(args.calib) if args.calib else None)

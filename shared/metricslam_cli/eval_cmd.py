@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam_cli.extras import require
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -46,6 +48,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.plot:
+        require("plots", command="eval --plot")
     import json
     from pathlib import Path
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -39,10 +40,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    require("slam-service", command="poses")
+
     import time
 
-    from metricslam_slam.client import PoseRecorder, query_trajectory
-    from metricslam_slam.recording import write_mcap, write_poses
+    from metricslam_slam.tools.client import PoseRecorder, query_trajectory
+    from metricslam_slam.tools.recording import write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
     session = open_client(args.zenoh_endpoint)

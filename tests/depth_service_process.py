@@ -1,6 +1,8 @@
-"""Start the real service as a child process (``metricslam depth-service``) and wait for it.
+"""Test support: start the real depth service as a child process (``metricslam depth-service``)
+and wait for it.
 
-Used by the tests and the benchmark, so both talk HTTP to exactly what an operator runs::
+Used by the tests and the benchmarks (``from tests.depth_service_process import ServiceProcess``,
+from the repository root), so both talk HTTP to exactly what an operator runs::
 
     with ServiceProcess(port=18101, settings={"max_queue": 2}) as service:
         httpx.get(service.url + "/readyz")
@@ -59,7 +61,7 @@ class ServiceProcess:
         env = dict(os.environ)
         env.update({f"DEPTH_{k.upper()}": str(v) for k, v in self._settings.items()})
         env.setdefault("DEPTH_LOG_LEVEL", "warning")
-        command = [sys.executable, "-m", "metricslam.cli.main", "depth-service",
+        command = [sys.executable, "-m", "metricslam_cli.main", "depth-service",
                    "--host", "127.0.0.1", "--port", str(self.port)]
         self._log_file = open(self._log_path, "wb") if self._log_path else subprocess.DEVNULL
         self.process = subprocess.Popen(command, env=env, stdout=self._log_file, stderr=subprocess.STDOUT)

@@ -4,7 +4,7 @@ Subscribes ``metricslam/*/frame``; each camera id gets a :class:`CameraWorker` (
 drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every processed frame,
 ``…/keyframe`` per keyframe, ``…/status`` every ``status_period_s``, and the map topics
 ``…/path``, ``…/landmarks``, ``…/keyframe_depth`` (:class:`MapPublisher`); with ``ros2`` on, a
-:class:`~metricslam_slam.ros2_bridge.Ros2Bridge` mirrors them as ROS 2 topics and takes
+:class:`~metricslam_slam.service.ros2_bridge.Ros2Bridge` mirrors them as ROS 2 topics and takes
 ``sensor_msgs`` camera input; answers the queryables
 ``…/trajectory`` (whole current trajectory) and ``metricslam/_service/health`` (JSON).
 Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
@@ -25,10 +25,10 @@ from metricslam.slam.config_file import load_system_config
 from metricslam.slam.system_config import SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
-from metricslam_slam.camera_worker import CameraWorker
-from metricslam_slam.map_publisher import MapPublisher
-from metricslam_slam.sessions import SessionFactory, make_session_factory
-from metricslam_slam.settings import SlamServiceSettings, check_retired_environment
+from metricslam_slam.service.camera_worker import CameraWorker
+from metricslam_slam.service.map_publisher import MapPublisher
+from metricslam_slam.service.sessions import SessionFactory, make_session_factory
+from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import open_client
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,7 @@ class SlamService:
         self.config = config if config is not None else load_system_config()
         use_scale = self.config.use_scale and settings.session_kind == "pipeline"
         if depth_source is None and use_scale and settings.depth_url:
-            from metricslam_slam.http_depth import HttpDepthSource
+            from metricslam_slam.service.http_depth import HttpDepthSource
             depth_source = HttpDepthSource(
                 settings.depth_url, timeout_s=settings.depth_timeout_s,
                 connect_timeout_s=settings.depth_connect_timeout_s,
@@ -104,7 +104,7 @@ class SlamService:
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
         ]
         if self.settings.ros2:
-            from metricslam_slam.ros2_bridge import Ros2Bridge
+            from metricslam_slam.service.ros2_bridge import Ros2Bridge
             st = self.settings
             self.ros2 = Ros2Bridge(s, st.ros2_domain_id, st.ros2_node_name, self._offer_frame, self._put,
                                    self._serves, st.ros2_position_sigma_m, st.ros2_rotation_sigma_rad)

@@ -10,7 +10,7 @@ import zenoh
 from metricslam.datasets.base import Sequence
 from metricslam.datasets.frame_reader import FrameReader
 from metricslam.errors import ConfigError, ServiceError
-from metricslam_slam.client import FramePublisher, PoseRecorder, query_health
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health
 
 log = logging.getLogger(__name__)
 

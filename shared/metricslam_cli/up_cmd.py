@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT, DEFAULT_ZENOH_ENDPOINT
+from metricslam_cli.extras import require
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -48,10 +49,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    require(*(() if args.no_scale else ("depth-service",)), "slam-service", command="up")
+
     import signal
     from pathlib import Path
 
-    from metricslam_slam.launcher import Stack
+    from metricslam_slam.supervisor.launcher import Stack
 
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
