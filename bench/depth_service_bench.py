@@ -67,9 +67,10 @@ def cpu_seconds(pid: int) -> float:
 
 
 def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: int,
-            latencies: list[float], statuses: dict[int, int], lock: threading.Lock) -> None:
+            latencies: list[float], statuses: dict[int, int], lock: threading.Lock,
+            media_type: str = "image/png") -> None:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
-    headers = {"Content-Type": "image/png"}
+    headers = {"Content-Type": media_type}
     if binary:
         headers["Accept"] = "application/x-npy"
     mine: list[float] = []
@@ -90,14 +91,15 @@ def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: in
 
 
 def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total: int,
-              server_pid: int) -> RunResult:
+              server_pid: int, media_type: str = "image/png") -> RunResult:
     """``total`` requests split over ``clients`` concurrent keep-alive connections."""
     per_client = max(1, total // clients)
     latencies: list[float] = []
     statuses: dict[int, int] = {}
     lock = threading.Lock()
     threads = [
-        threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock))
+        threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock,
+                                               media_type))
         for k in range(clients)
     ]
     server_cpu0, client_cpu0 = cpu_seconds(server_pid), time.process_time()

@@ -18,6 +18,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
+import cv2
 from fastapi import FastAPI
 
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel
@@ -56,6 +57,9 @@ class ServiceState:
 
 def _load_model(state: ServiceState) -> None:
     s = state.settings
+    # the max_concurrency workers are the parallelism: OpenCV's own pool (decode, resize) would
+    # only add threads competing for the same cores, like onnxruntime's intra-op pool would
+    cv2.setNumThreads(s.threads)
     try:
         model = DepthModel.load(s.model_path, threads=s.threads)
     except Exception:  # noqa: BLE001 - any failure must leave the service unready, not dead

@@ -1,5 +1,8 @@
 """The CPU work of one request, run on a worker thread: decode -> network -> metric -> encode.
 
+Images are decoded straight to gray, large JPEGs at 1/2 or 1/4 size (the network resizes
+everything to its input; :func:`~metricslam_depth.imaging.decode_gray`).
+
 Everything blocking lives here so the event loop only moves bytes. The response body is
 encoded on the worker too (JSON of 2x32x64 floats is not free), inside the admission slot.
 """
@@ -17,7 +20,7 @@ from metricslam.disparity import inv_depth_from_width_fraction
 from metricslam.errors import ImageError
 
 from .errors import RequestProblem
-from .imaging import decode_image
+from .imaging import decode_gray
 from .metrics import ServiceMetrics
 from .schemas import BatchResponse, DisparityResponse, DisparityResult
 
@@ -77,17 +80,21 @@ class DepthPipeline:
         Raises:
             RequestProblem: 400/413 for an image that cannot be used (says which one).
         """
-        images = []
+        images, sizes = [], []
+        c = self.model.contract
         for index, upload in enumerate(uploads):
             t0 = time.perf_counter()
             try:
-                images.append(decode_image(
-                    upload.data, upload.media_type, self.max_pixels, self.max_decoded_bytes
-                ))
+                image, size_px = decode_gray(
+                    upload.data, upload.media_type, self.max_pixels, self.max_decoded_bytes,
+                    min_size_px=(c.input_width, c.input_height),
+                )
             except RequestProblem as exc:
                 if len(uploads) > 1:
                     exc.detail = f"image {index}: {exc.detail}"
                 raise
+            images.append(image)
+            sizes.append(size_px)  # as uploaded (fx refers to it), not as decoded
             if isinstance(upload.data, bytearray):
                 upload.data.clear()
             self.metrics.decode.observe(time.perf_counter() - t0)
@@ -98,12 +105,9 @@ class DepthPipeline:
             raise RequestProblem(400, "unusable-image", "Image not usable", str(exc)) from exc
         infer_s = time.perf_counter() - t0
         self.metrics.inference.labels(route).observe(infer_s)
-        baseline_m = self.model.contract.baseline_m
+        baseline_m = c.baseline_m
         inv = np.empty_like(d_frac)
-        sizes = []
-        for i, image in enumerate(images):
-            height_px, width_px = image.shape[:2]
-            sizes.append((int(width_px), int(height_px)))
+        for i, (width_px, _) in enumerate(sizes):
             inv[i] = inv_depth_from_width_fraction(d_frac[i], fx_px, float(width_px), baseline_m)
         return Prediction(d_frac, inv, sizes, float(fx_px), infer_s * 1e3)
 

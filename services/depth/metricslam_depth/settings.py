@@ -48,7 +48,8 @@ class DepthServiceSettings(BaseSettings):
     )
     # Measured on the 2-core dev machine: two single-threaded requests in parallel beat one
     # two-threaded request (decode/resize/encode do not parallelise inside one request).
-    threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads per request")
+    threads: int = Field(1, ge=1, le=64, description="threads one request may use: onnxruntime "
+                         "intra-op threads and OpenCV's pool (decode, resize)")
     max_concurrency: int = Field(
         2, ge=1, le=64, description="requests decoded and inferred at the same time (~ cores)"
     )

@@ -117,6 +117,12 @@ class FileSequence:
         return len(self.image_paths)
 
     def __getitem__(self, index: int) -> Frame:
+        return self.frame(index)
+
+    def frame(self, index: int, extras: bool = True) -> Frame:
+        """Frame ``index``; ``extras=False`` leaves out the right image and the ground-truth
+        depth (``image_right``, ``baseline_m``, ``depth_m`` None), which no estimator reads
+        (decoding them cost ``metricslam run`` as much as the left image: bench/results/profile.md)."""
         n = len(self)
         if not isinstance(index, (int, np.integer)):
             raise TypeError(f"frame index must be an int, got {type(index).__name__}")
@@ -126,9 +132,9 @@ class FileSequence:
             raise IndexError(f"frame {index} out of range for {n} frames")
         index = int(index)
         image = self._image(self.image_paths[index])
-        right = self._image(self.right_paths[index]) if self.right_paths is not None else None
+        right = self._image(self.right_paths[index]) if extras and self.right_paths is not None else None
         depth = None
-        if self.depth_paths is not None and self.depth_paths[index] is not None:
+        if extras and self.depth_paths is not None and self.depth_paths[index] is not None:
             depth = load_depth_png(self.depth_paths[index], self.depth_scale_per_m)
             if self.undistort_maps is not None:  # keep the ground truth registered to the image
                 import cv2

@@ -156,8 +156,9 @@ class LandmarkMap:
         rhos = [lm.rho for lm in self.landmarks.values() if lm.has_depth]
         rho_med = float(np.median(rhos)) if rhos else None
         rows, hosts, bearing, rho = [], [], [], []
-        for k, lid in enumerate(lm_ids):
-            lm = self.landmarks.get(int(lid))
+        get = self.landmarks.get
+        for k, lid in enumerate(np.asarray(lm_ids).tolist()):  # Python ints: no numpy scalars
+            lm = get(lid)
             if lm is None or lm.host_kf not in T_world_by_kf:
                 continue
             if not lm.has_depth and rho_med is None:

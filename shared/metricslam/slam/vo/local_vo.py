@@ -308,7 +308,7 @@ class LocalVO:
             guess = self.map.predict_pixels(self.frontend.ids, T_by_kf, T_pred)
         self.frontend.track(gray, guess)
         with self._lock:  # tracks whose landmark left with a marginalized keyframe
-            orphan = [i for i in self.frontend.ids if int(i) not in self.map.landmarks]
+            orphan = [i for i in self.frontend.ids.tolist() if i not in self.map.landmarks]
         self.frontend.drop(np.array(orphan, dtype=np.int64))
         self.frontend.reject_by_essential(self._kf_track_ids, self._kf_track_uv)
         tracks = self.frontend.tracks
