@@ -29,7 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--port", type=int, help=f"TCP port (default {DEFAULT_DEPTH_PORT}; env DEPTH_PORT)")
     p.add_argument("--model", dest="model_path", metavar="PATH",
                    help="ONNX model file (default: the shipped model; env DEPTH_MODEL_PATH)")
-    p.add_argument("--threads", type=int, help="onnxruntime intra-op threads (env DEPTH_THREADS)")
+    p.add_argument("--threads", type=int, help="threads per request: onnxruntime intra-op and OpenCV (env DEPTH_THREADS)")
     p.add_argument("--max-concurrency", type=int,
                    help="requests inferred at once (env DEPTH_MAX_CONCURRENCY)")
     p.add_argument("--max-queue", type=int,
