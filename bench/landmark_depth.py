@@ -76,7 +76,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from bench.machine import command_line, describe, write_results
+from bench.machine import command_line, publish
 from metricslam.datasets import open_sequence
 from metricslam.depth import DEFAULT_MODEL_PATH, DepthModel, sample_map
 from metricslam.slam.session_builder import preset_for
@@ -366,11 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate(list(zip(args.seq, args.gt)), args.model, args.name, stride=args.stride, gap=args.gap,
                       min_parallax_deg=args.min_parallax_deg, num_disparities=args.num_disparities,
                       oracle=not args.no_oracle, slam=args.slam, slam_preset_name=args.slam_preset)
-    machine = describe()
-    text = markdown(result, command, machine)
-    print(text)
-    if args.out:
-        write_results(args.out, {**result, "command": command, "machine": machine}, text)
+    publish(args.out, result, command, markdown)
     return 0
 
 

@@ -55,3 +55,14 @@ def write_results(out: str | Path, payload: dict, markdown: str) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(payload, indent=1, default=str) + "\n")
     out.with_suffix(".md").write_text(markdown)
+
+
+def publish(out: str | Path | None, result: dict, command: str, render) -> str:
+    """Render ``result`` with ``render(result, command, machine)``, print it, and write
+    ``OUT.json`` (``result`` plus ``command`` and ``machine``) and ``OUT.md`` when ``out`` is given."""
+    machine = describe()
+    text = render(result, command, machine)
+    print(text)
+    if out:
+        write_results(out, {**result, "command": command, "machine": machine}, text)
+    return text

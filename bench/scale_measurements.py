@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -43,7 +42,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench.machine import describe, write_results
+from bench.machine import command_line, publish
 from bench.scale_upper_bound import disparity_at
 from metricslam.datasets import open_sequence
 from metricslam.depth import DEFAULT_MODEL_PATH
@@ -200,13 +199,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", metavar="PREFIX", help="write PREFIX.json and PREFIX.md")
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
-    command = f"{os.path.relpath(sys.executable)} -m bench.scale_measurements {shlex.join(argv)}"
+    command = command_line("bench.scale_measurements", argv)
     result = evaluate(args.seq, args.model)
-    machine = describe()
-    text = markdown(result, command, machine)
-    print(text)
-    if args.out:
-        write_results(args.out, {**result, "command": command, "machine": machine}, text)
+    publish(args.out, result, command, markdown)
     return 0
 
 
