@@ -25,12 +25,28 @@ from metricslam_depth.settings import DepthServiceSettings  # noqa: E402
 from metricslam_slam.service.settings import SlamServiceSettings  # noqa: E402
 
 
+def interpolate(text: str, env: dict[str, str] | None = None) -> str:
+    """What ``docker compose`` does to ``${NAME:-default}`` / ``${NAME}`` before parsing
+    (``compose-spec`` parses the file as written)."""
+    env = {} if env is None else env
+    return re.sub(r"\$\{(\w+)(?::-([^}]*))?\}", lambda m: env.get(m[1]) or (m[2] or ""), text)
+
+
 @pytest.fixture(scope="module")
 def compose(repo_root: Path) -> dict:
-    text = (repo_root / "docker-compose.yml").read_text()
+    text = interpolate((repo_root / "docker-compose.yml").read_text())
     parsed = compose_spec.PyCompose.from_yaml(text)
     parsed.validate()
     return yaml.safe_load(text)
+
+
+def test_ports_are_published_on_loopback_unless_configured(repo_root: Path) -> None:
+    raw = (repo_root / "docker-compose.yml").read_text()
+    published = [p for svc in yaml.safe_load(interpolate(raw))["services"].values() for p in svc.get("ports", [])]
+    assert sorted(published) == ["127.0.0.1:7447:7447", "127.0.0.1:8100:8100"]
+    opened = yaml.safe_load(interpolate(raw, {"METRICSLAM_PUBLISH_ADDRESS": "0.0.0.0"}))
+    assert opened["services"]["zenoh"]["ports"] == ["0.0.0.0:7447:7447"]
+    compose_spec.PyCompose.from_yaml(interpolate(raw, {"METRICSLAM_PUBLISH_ADDRESS": "0.0.0.0"})).validate()
 
 
 def _copy_sources(dockerfile: Path) -> list[str]:
@@ -53,7 +69,7 @@ def test_compose_file_is_valid_spec(compose: dict) -> None:
 
 
 def test_strict_parser_rejects_a_broken_file(repo_root: Path) -> None:
-    text = (repo_root / "docker-compose.yml").read_text()
+    text = interpolate((repo_root / "docker-compose.yml").read_text())
     with pytest.raises(ValueError):
         compose_spec.PyCompose.from_yaml(text.replace("restart: unless-stopped", "restart_policy: x", 1))
     with pytest.raises(ValueError):

@@ -175,6 +175,8 @@ def test_slam_service_takes_the_same_file_as_run(tmp_path, monkeypatch) -> None:
     offline = run_cmd.config_from_args(parser.parse_args(["run", "SEQ", "--out", "x", "--config", str(path)]))
     assert live.vo == offline.vo and live.vo.preset == "euroc" and live.graph.loop.enabled is False
     assert live.graph.model_copy(update={"depth_queue_size": 256}) == offline.graph
+    # the live service starts metric (initial scale); offline runs stay as they were
+    assert live.initial_scale.enabled and not offline.initial_scale.enabled
     monkeypatch.setenv("METRICSLAM_CONFIG", str(path))
     from_env = slam_service_cmd.config_from_args(parser.parse_args(["slam-service", "--queue-size", "3"]))
     assert from_env.vo == live.vo and from_env.queues.frames == 3

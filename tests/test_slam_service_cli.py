@@ -56,7 +56,7 @@ def test_camera_to_poses_tum(service, tmp_path: Path) -> None:
     out = tmp_path / "poses.tum"
     poses = subprocess.Popen(CLI + ["poses", "--zenoh-endpoint", ENDPOINT, "--out", str(out),
                                     "--frames", "12", "--timeout", "60", "--format", "tum",
-                                    "--camera-id", "webcam"],
+                                    "--camera-id", "webcam", "--all"],  # identity poses are unscaled
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert poses.stdout.readline().startswith("recording")
     cam = subprocess.run(CLI + ["camera", "--device", str(video), "--zenoh-endpoint", ENDPOINT,

@@ -6,10 +6,48 @@ an image by ``sx`` maps ``u → (u + 0.5)·sx − 0.5``. See ``docs/conventions.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from metricslam.errors import CameraError
+
+#: plausible intrinsics (:func:`check_intrinsics`): focal lengths in (0, MAX_FOCAL_PX] px, image
+#: sides in [1, MAX_IMAGE_SIDE_PX] px, principal point within [-width, 2·width] x [-height, 2·height].
+MAX_FOCAL_PX = 1e5
+MAX_IMAGE_SIDE_PX = 16384
+
+
+def check_intrinsics(fx_px: float, fy_px: float, cx_px: float, cy_px: float,
+                     width_px: int, height_px: int) -> None:
+    """Refuse intrinsics no real camera has: non-finite values, focal lengths outside
+    (0, :data:`MAX_FOCAL_PX`] px, image sides outside [1, :data:`MAX_IMAGE_SIDE_PX`] px, a
+    principal point outside [-width, 2·width] x [-height, 2·height] px.
+
+    The one check every way in uses (:class:`PinholeCamera` runs it, so the wire codec, the SLAM
+    service and the ``camera`` command do too): a 1e308 px focal length used to be accepted and
+    cost over a second per frame.
+
+    Raises:
+        CameraError: saying which value is out of range and what range is plausible.
+    """
+    values = {"fx_px": fx_px, "fy_px": fy_px, "cx_px": cx_px, "cy_px": cy_px,
+              "width_px": width_px, "height_px": height_px}
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise CameraError(f"{name} must be a finite number, got {value!r}")
+    for name in ("width_px", "height_px"):
+        if not 1 <= values[name] <= MAX_IMAGE_SIDE_PX:
+            raise CameraError(f"{name} must be in [1, {MAX_IMAGE_SIDE_PX}] px, got {values[name]}")
+    for name in ("fx_px", "fy_px"):
+        if not 0 < values[name] <= MAX_FOCAL_PX:
+            raise CameraError(f"{name} must be in (0, {MAX_FOCAL_PX:g}] px, got {values[name]!r}; "
+                              "pass the focal length in pixels at the image's resolution")
+    for name, side in (("cx_px", width_px), ("cy_px", height_px)):
+        if not -side <= values[name] <= 2 * side:
+            raise CameraError(f"{name} = {values[name]!r} px is outside [-{side}, {2 * side}] px for a "
+                              f"{width_px}x{height_px} image; the principal point is near its centre")
 
 
 class PinholeCamera(BaseModel):
@@ -24,6 +62,14 @@ class PinholeCamera(BaseModel):
     width_px: int = Field(gt=0)
     height_px: int = Field(gt=0)
 
+    @model_validator(mode="after")
+    def _plausible(self) -> "PinholeCamera":
+        try:
+            check_intrinsics(self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width_px, self.height_px)
+        except CameraError as exc:  # pydantic reports ValueErrors as validation errors
+            raise ValueError(str(exc)) from None
+        return self
+
     @classmethod
     def from_K(cls, K: np.ndarray, width_px: int, height_px: int) -> "PinholeCamera":
         """From a 3x3 (or the left 3x3 of a 3x4 projection) matrix."""
@@ -32,6 +78,8 @@ class PinholeCamera(BaseModel):
             raise CameraError(f"expected a finite 3x3 K or 3x4 P matrix, got shape {K.shape}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CameraError(f"focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]}")
+        check_intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                         int(width_px), int(height_px))
         return cls(fx_px=K[0, 0], fy_px=K[1, 1], cx_px=K[0, 2], cy_px=K[1, 2],
                    width_px=int(width_px), height_px=int(height_px))
 

@@ -67,16 +67,22 @@ def check_intrinsics_flags(args: argparse.Namespace) -> None:
 
 
 def intrinsics(width_px: int, height_px: int, fx=None, fy=None, cx=None, cy=None, fov_deg=None):
-    """PinholeCamera from flags: ``fx`` (px), or the horizontal field of view ``fov_deg``."""
+    """PinholeCamera from flags: ``fx`` (px), or the horizontal field of view ``fov_deg``.
+
+    Raises:
+        CameraError: implausible intrinsics (:func:`metricslam.camera.check_intrinsics`).
+    """
     import math
 
-    from metricslam.camera import PinholeCamera
+    from metricslam.camera import PinholeCamera, check_intrinsics
 
-    if not fx:
+    if fx is None:
         fx = 0.5 * width_px / math.tan(math.radians(0.5 * fov_deg))
-    return PinholeCamera(fx_px=fx, fy_px=fy or fx, cx_px=(width_px - 1) / 2 if cx is None else cx,
-                         cy_px=(height_px - 1) / 2 if cy is None else cy,
-                         width_px=width_px, height_px=height_px)
+    values = {"fx_px": fx, "fy_px": fx if fy is None else fy, "cx_px": (width_px - 1) / 2 if cx is None else cx,
+              "cy_px": (height_px - 1) / 2 if cy is None else cy,
+              "width_px": width_px, "height_px": height_px}
+    check_intrinsics(**values)  # CameraError naming the flag's value, before anything is published
+    return PinholeCamera(**values)
 
 
 def frame_calibration(args: argparse.Namespace, width_px: int, height_px: int):

@@ -8,6 +8,12 @@ Example::
 Writes one line per frame in frame order (KITTI: 3x4 ``T_world_cam`` row-major; TUM:
 ``t tx ty tz qx qy qz qw``). ``--trajectory`` writes the service's optimized trajectory
 (queried at the end) instead of the live poses. Fails if fewer than ``--frames`` poses arrived.
+
+Only poses with a metric scale are recorded: ``provisional`` (the initial estimate, or fewer
+learned scale factors than needed to call it established) and ``metric``. ``unscaled`` poses
+(the VO's arbitrary units: no depth source, or the VO had no map yet) are skipped and counted —
+left out of a TUM file, a placeholder line in a KITTI file (one line per frame;
+:func:`~metricslam_slam.tools.recording.write_poses`) — unless ``--all``.
 """
 
 from __future__ import annotations
@@ -29,6 +35,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--timeout", type=float, default=120.0, metavar="S")
     p.add_argument("--format", choices=("kitti", "tum"), default="kitti")
     p.add_argument("--camera-id", default="cam0", metavar="ID")
+    p.add_argument("--all", dest="include_unscaled", action="store_true",
+                   help="also record unscaled poses (the VO's arbitrary units); by default they are "
+                        "skipped and counted (KITTI: a placeholder line each, TUM: left out)")
     p.add_argument("--trajectory", action="store_true",
                    help="write the optimized trajectory (queried at the end) instead of live poses")
     p.add_argument("--mcap", metavar="OUT.mcap",
@@ -45,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from metricslam_slam.tools.client import PoseRecorder, query_trajectory
-    from metricslam_slam.tools.recording import write_mcap, write_poses
+    from metricslam_slam.tools.recording import unscaled_frames, write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
     session = open_client(args.zenoh_endpoint)
@@ -62,6 +71,35 @@ def run(args: argparse.Namespace) -> int:
     if args.mcap:  # before the pose file, which fails when frames are missing
         counts = write_mcap(args.mcap, args.camera_id, recorder, trajectory)
         print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
-    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames)
-    print(f"wrote {n_written} poses to {args.out}")
+    unscaled = unscaled_frames(recorder.poses, trajectory, args.frames)
+    skip = [] if args.include_unscaled else unscaled
+    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames, skip)
+    print(f"wrote {n_written} poses to {args.out} ({_states(recorder.poses, trajectory, args.frames)})")
+    if skip:
+        where = "left out" if args.format == "tum" else "a placeholder line each"
+        print(f"skipped {len(skip)} unscaled poses (frames {_ranges(skip)}; {where}); --all records them")
     return 0
+
+
+def _states(poses: dict, trajectory, n_frames: int) -> str:
+    """``"2 unscaled, 22 provisional, 27 metric"`` over frames ``0..n_frames-1``."""
+    from collections import Counter
+
+    if trajectory is not None:
+        return "optimized trajectory, scale " + ("established" if trajectory.scale_established else "not established")
+    counts = Counter(poses[i].effective_scale_state().value for i in range(n_frames) if i in poses)
+    return ", ".join(f"{counts.get(k, 0)} {k}" for k in ("unscaled", "provisional", "metric"))
+
+
+def _ranges(frames: list[int]) -> str:
+    """``[0, 1, 2, 7]`` -> ``"0-2, 7"``."""
+    out: list[str] = []
+    start = prev = None
+    for i in sorted(frames) + [None]:
+        if start is not None and (i is None or i != prev + 1):
+            out.append(f"{start}" if start == prev else f"{start}-{prev}")
+            start = None
+        if i is not None and start is None:
+            start = i
+        prev = i
+    return ", ".join(out)

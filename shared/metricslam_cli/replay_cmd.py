@@ -6,8 +6,12 @@ Example::
 
 Waits (``--wait``) until a SLAM service answers so no frame is published into the void, then
 publishes every frame on ``metricslam/<camera_id>/frame`` (reliable, blocking congestion
-control) with a progress bar, and exits. ``--max-in-flight N`` adds back-pressure (never more than
-N frames ahead of the poses) for runs where every frame must be processed on a slow machine.
+control) with a progress bar, then counts the frames the SLAM service confirmed (a pose each,
+waiting up to ``--confirm-timeout`` seconds without news for the last ones) and prints
+``sent N …; the SLAM service confirmed M``. Exit code 1 when they differ (frames dropped from
+the service's full queue, malformed, lost), unless ``--allow-loss``. ``--max-in-flight N`` adds
+back-pressure (never more than N frames ahead of the poses) for runs where every frame must be
+processed on a slow machine.
 """
 
 from __future__ import annotations
@@ -37,6 +41,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "frames arrived (0: off, a pure fixed-rate stream)")
     p.add_argument("--wait", type=float, default=30.0, metavar="S",
                    help="seconds to wait for a SLAM service before giving up (0: do not wait)")
+    p.add_argument("--confirm-timeout", type=float, default=10.0, metavar="S",
+                   help="after the last frame, wait for missing poses until none arrived for S "
+                        "seconds (default 10; 0: count what arrived by then)")
+    p.add_argument("--allow-loss", action="store_true",
+                   help="exit 0 even when the SLAM service confirmed fewer frames than were sent")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
     return p
@@ -47,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
 
     from metricslam.calibration import load_calibration
     from metricslam.datasets import open_sequence
+    from metricslam.errors import ServiceError
     from metricslam_slam.tools.replay import replay_sequence, wait_for_service
     from metricslam_slam.zenoh_config import open_client
 
@@ -56,8 +66,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.wait > 0:
             wait_for_service(session, args.wait, args.zenoh_endpoint)
-        replay_sequence(session, seq, args.camera_id, args.rate, args.start, stop,
-                        args.max_in_flight, progress=not args.no_progress)
+        report = replay_sequence(session, seq, args.camera_id, args.rate, args.start, stop,
+                                 args.max_in_flight, progress=not args.no_progress,
+                                 confirm_timeout_s=args.confirm_timeout)
     finally:
         session.close()
+    if not report.complete and not args.allow_loss:
+        raise ServiceError(report.describe() + "; lower --rate, add --max-in-flight N, or pass "
+                           "--allow-loss to accept it")
+    print(report.describe(), flush=True)
     return 0

@@ -32,6 +32,10 @@ a pose (:func:`pose_gap_stats`), plus the scale estimate over time
   first keyframe's VO units with ``--no-scale`` / ``--vo-only`` (the VO's arbitrary scale).
 * ``scale_corrections`` — one dict per applied warp: ``frame_index``, ``t_ns``, its scale ``s``
   and ``scale_live`` after it.
+* ``scale_states`` — how many frames' poses were ``unscaled`` / ``provisional`` / ``metric`` when
+  processed (:class:`~metricslam.slam.types.ScaleState`), ``first_metric_frame``, and
+  ``initial_scale`` (the provisional scale at VO initialization; None when off, as it is offline
+  unless the config's ``initial_scale`` section turns it on).
 """
 
 from __future__ import annotations

@@ -56,15 +56,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "metricslam[ros]; docs/ros2.md)")
     p.add_argument("--ros-domain-id", dest="ros2_domain_id", type=int, metavar="N",
                    help="ROS_DOMAIN_ID of the ROS 2 topics (default 0; env SLAM_ROS2_DOMAIN_ID)")
+    p.add_argument("--state-dir", metavar="DIR",
+                   help="persist each camera's trajectory here; a restarted service continues it "
+                        "(env SLAM_STATE_DIR; docs/deployment.md)")
+    p.add_argument("--max-cameras", type=int, metavar="N",
+                   help="cameras served at once; more are refused (default 8; env SLAM_MAX_CAMERAS)")
     p.set_defaults(func=run)
     return p
 
 
 def config_from_args(args: argparse.Namespace):
-    """The sessions' :class:`~metricslam.slam.system_config.SystemConfig`: class defaults →
+    """The sessions' :class:`~metricslam.slam.system_config.SystemConfig`: class defaults → the
+    live profile (:data:`~metricslam.slam.system_config.LIVE_PROFILE`: initial metric scale on) →
     ``--config`` (or ``$METRICSLAM_CONFIG``) → ``METRICSLAM_*`` → ``--preset`` / ``--queue-size``
     / ``--no-scale`` — the loader ``metricslam run`` uses, without its offline depth queue."""
     from metricslam.slam.config_file import load_system_config
+    from metricslam.slam.system_config import LIVE_PROFILE
 
     flags: dict = {}
     if args.preset is not None:
@@ -73,7 +80,7 @@ def config_from_args(args: argparse.Namespace):
         flags["queues"] = {"frames": args.queue_size}
     if args.no_scale:
         flags["depth"] = {"use_scale": False}
-    return load_system_config(args.config, overrides=flags)
+    return load_system_config(args.config, profile=LIVE_PROFILE, overrides=flags)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,18 +93,23 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
                                                  "keyframe_images", "rerun", "frame_key_expr",
-                                                 "ros2", "ros2_domain_id")
+                                                 "ros2", "ros2_domain_id", "state_dir", "max_cameras")
                  if getattr(args, k) is not None}
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
     config = config_from_args(args)  # before any network: a bad file fails fast
     service = SlamService(SlamServiceSettings(**overrides), config=config)
+    # the handler only appends to a list: setting the service's Event from a handler can deadlock
+    # on the lock its wait() holds; and the wait is polled, because a signal that lands on a
+    # zenoh thread runs its Python handler only when the main thread wakes up
+    signalled: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: service.request_stop())
+        signal.signal(sig, lambda signum, _frame: signalled.append(signum))
     service.start()
     print("READY", flush=True)
     try:
-        service.wait()
+        while not signalled and not service.wait(0.5):
+            pass
     finally:
         service.stop()
     return 0

@@ -6,8 +6,10 @@ Example::
     metricslam replay SEQ --zenoh-endpoint tcp/127.0.0.1:7447 --rate 10     # in another shell
 
 Every port the stack binds is checked first: a taken one is refused (exit code 1) with a message
-naming it and the flag that moves it. Children are supervised (restarted if they die, with
-exponential backoff while they keep crashing); Ctrl-C / SIGTERM stops them all.
+naming it and the flag that moves it. Children are supervised: restarted if they die, or if
+they stop answering their health probe (router query, depth ``/healthz``, SLAM health query) for
+``--hang-timeout`` seconds, with exponential backoff while they keep failing; Ctrl-C / SIGTERM
+stops them all.
 """
 
 from __future__ import annotations
@@ -42,6 +44,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "crashing (default 1)")
     p.add_argument("--restart-delay-max", type=float, default=30.0, metavar="S",
                    help="longest wait between restarts of a crashing child (default 30)")
+    p.add_argument("--hang-timeout", type=float, default=20.0, metavar="S",
+                   help="kill and restart a child whose health probe has not answered for S "
+                        "seconds (router: a zenoh query, depth: /healthz, SLAM: its health query; "
+                        "default 20; 0: only restart children that exit)")
+    p.add_argument("--probe-period", type=float, default=2.0, metavar="S",
+                   help="seconds between health probes (default 2)")
     p.add_argument("--rerun", metavar="TARGET",
                    help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
     p.set_defaults(func=run)
@@ -61,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
     stack = Stack(args.zenoh_endpoint, depth_port=args.depth_port, depth_host=args.depth_host,
                   use_scale=not args.no_scale, preset=args.preset, session_kind=args.session_kind,
                   log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun,
-                  config_path=args.config, restart_delay_max_s=args.restart_delay_max)
+                  config_path=args.config, restart_delay_max_s=args.restart_delay_max,
+                  hang_timeout_s=args.hang_timeout, probe_period_s=args.probe_period)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 
@@ -72,11 +81,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"{child.name:<14} restarted  pid {child.process.pid:<7} (restart #{child.restarts})",
               flush=True)
 
+    def hung(child, silent_s: float) -> None:
+        print(f"{child.name:<14} hung  no health answer for {silent_s:.1f} s; killed, restarting",
+              flush=True)
+
     stack.start(on_ready=ready)
     print(f"UP: publish frames on metricslam/<camera_id>/frame via {args.zenoh_endpoint}; "
           "Ctrl-C stops", flush=True)
     try:
-        stack.supervise(on_restart=restarted)
+        stack.supervise(on_restart=restarted, on_hung=hung)
     finally:
         stack.stop()
         print("stopped", flush=True)

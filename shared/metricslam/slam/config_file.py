@@ -1,7 +1,7 @@
 """Load a :class:`~metricslam.slam.system_config.SystemConfig`: defaults → YAML → environment → flags.
 
 The YAML file (``metricslam run --config FILE.yaml``, ``metricslam slam-service --config
-FILE.yaml``, or ``METRICSLAM_CONFIG=FILE.yaml``) has up to four sections, each a mapping of
+FILE.yaml``, or ``METRICSLAM_CONFIG=FILE.yaml``) has up to five sections, each a mapping of
 field overrides, and two top-level switches; anything left out keeps its default (the graph,
 depth, queues) or the VO preset's value::
 
@@ -17,6 +17,8 @@ depth, queues) or the VO preset's value::
       model_path: my_model.onnx
     queues:                    # QueueConfig: frames (per camera, live service)
       frames: 8
+    initial_scale:             # InitialScaleConfig: enabled (live service: on), timeout_s
+      timeout_s: 2.0
     vo_only: false
     deterministic: false
 
@@ -50,7 +52,7 @@ __all__ = ["CONFIG_ENV", "DETERMINISTIC_GRAPH", "DETERMINISTIC_VO", "ENV_PREFIX"
            "ConfigOverrides", "environment_layer", "load_system_config", "read_config_file"]
 
 #: sections (mappings) and switches (scalars) a file or the environment may set
-SECTIONS = ("vo", "graph", "depth", "queues")
+SECTIONS = ("vo", "graph", "depth", "queues", "initial_scale")
 SWITCHES = ("vo_only", "deterministic")
 ENV_PREFIX = "METRICSLAM_"
 #: environment variable naming the YAML file when no ``--config`` flag is given

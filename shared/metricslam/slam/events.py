@@ -5,7 +5,8 @@ Observers (the scale history, the Rerun view, the status publisher, benchmarks) 
 Events are frozen dataclasses; their arrays are the back end's own (do not modify them).
 
 Threading: in threaded mode :class:`ScaleMeasured` is emitted on the depth worker's thread and
-the others on the graph worker's (or the tracking thread for :class:`WarpApplied`); with
+the others on the graph worker's (or the tracking thread for :class:`WarpApplied` and
+:class:`InitialScaleApplied`, which the pipeline emits on the back end's bus); with
 ``GraphConfig.inline`` everything is emitted on the caller's thread, in a deterministic order.
 A subscriber must be quick and thread-safe; an exception in one is logged and never reaches the
 back end (observing must not change what the system estimates).
@@ -97,7 +98,21 @@ class WarpApplied:
     epoch: int
 
 
-Event = ScaleMeasured | Solved | LoopAccepted | WarpApplied
+@dataclass(frozen=True)
+class InitialScaleApplied:
+    """The pipeline warped the freshly initialized VO to a provisional metric scale before any
+    keyframe reached the graph (:mod:`metricslam.slam.initial_scale`; emitted on the tracking
+    thread). ``scale``: metres per VO unit from ``n_landmarks`` measurements of keyframe
+    ``kf_frame_index``, applied at frame ``frame_index`` after waiting ``wait_ms``."""
+
+    kf_frame_index: int
+    frame_index: int
+    scale: float
+    n_landmarks: int
+    wait_ms: float
+
+
+Event = ScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
 
 
 class EventBus:

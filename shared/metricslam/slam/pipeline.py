@@ -8,22 +8,32 @@ pose: ``S_world_kf`` from the back end for marginalized keyframes (rotation ``R_
 position ``S_world_kf · t_kf_cam``, ``docs/conventions.md``), else the VO's keyframe pose.
 The scale estimate over time (live warp scale, optimized per-keyframe scale) is recorded in a
 :class:`~metricslam.slam.scale_history.ScaleHistory` (:meth:`SlamPipeline.scale_history`).
+
+With ``InitialScaleConfig.enabled`` (the live service), the frame on which the VO first has a map
+waits (bounded) for the depth source's answer on the initial keyframe and the VO is warped to the
+provisional metric scale it gives (:mod:`metricslam.slam.initial_scale`), so the first published
+pose is already metric-ish. Every pose says what its scale rests on (``PoseEstimate.scale_state``:
+unscaled / provisional / metric, and the graph's scale factor count).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 
 import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.geometry import sim3, so3
+from metricslam.slam.events import InitialScaleApplied
+from metricslam.slam.initial_scale import InitialScale, InitialScaleConfig, measure_initial_scale
 from metricslam.slam.scale_history import ScaleHistory
-from metricslam.slam.types import Backend, MarginalizedKeyframe, PoseEstimate
+from metricslam.slam.timing import TimingSummary
+from metricslam.slam.types import Backend, MarginalizedKeyframe, PoseEstimate, ScaleState, TrackingState
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.local_vo import LocalVO
 
@@ -41,10 +51,13 @@ class SlamPipeline:
         scale_history: recorder of the scale estimate (a fresh one when None); attach it to
             the back end's events (:meth:`~metricslam.slam.scale_history.ScaleHistory.attach`)
             to also record each keyframe's learned scale measurements (``build_session`` does).
+        initial_scale: the initial scale step (off when None or not ``enabled``); it asks the
+            back end's ``depth_source`` and uses its ``config`` (a ``GraphConfig``) filters.
     """
 
     def __init__(self, camera: PinholeCamera, vo_config: VOConfig | None = None,
-                 backend: Backend | None = None, scale_history: ScaleHistory | None = None) -> None:
+                 backend: Backend | None = None, scale_history: ScaleHistory | None = None,
+                 initial_scale: InitialScaleConfig | None = None) -> None:
         self.camera = camera
         self.backend = backend
         self.vo = LocalVO(vo_config or VOConfig(), camera, consumer=self)
@@ -53,10 +66,15 @@ class SlamPipeline:
         # frame_index -> [kf_frame_index, T_kf_cam (4, 4) in the VO units of that keyframe]
         self._anchors: dict[int, list] = {}
         self._marginalized: set[int] = set()
-        self._timings_ms: dict[str, list[float]] = defaultdict(list)
+        self._timings_ms: dict[str, TimingSummary] = defaultdict(TimingSummary)
         self._corrections = 0
         self._scale_history = scale_history if scale_history is not None else ScaleHistory()
         self._closed = False
+        self._initial_config = initial_scale or InitialScaleConfig()
+        self._initial_pending = backend is not None and self._initial_config.enabled
+        self._initial: InitialScale | None = None
+        self._scale_states: Counter = Counter()
+        self._first_metric_frame: int | None = None
 
     # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
@@ -73,20 +91,27 @@ class SlamPipeline:
         t0 = time.perf_counter()
         est = self.vo.process(frame)
         self._collect_anchors()
+        scale_ok, n_factors = False, 0
         if self.backend is not None:
             try:
+                if self._initial_pending and est.state is TrackingState.TRACKING:
+                    est = self._initial_scale_step(est)
                 S_new_vo = self.backend.take_correction()
                 if S_new_vo is not None:
                     self._apply_correction(S_new_vo)
                     self._scale_history.on_correction(frame.index, frame.t_ns, sim3.scale(S_new_vo))
                     est = self._rewarp(est, S_new_vo)
                 scale_ok = bool(self.backend.scale_established)
+                n_factors = int(getattr(self.backend, "scale_factors_solved", 0))
             except Exception:  # noqa: BLE001 -- a back-end failure must not stop tracking
                 log.exception("back end failed after frame %d", frame.index)
                 scale_ok = False
-            if scale_ok:
-                est = PoseEstimate(est.frame_index, est.t_ns, est.T_world_cam, est.state,
-                                   est.is_keyframe, est.segment_id, True)
+        est = dataclasses.replace(est, scale_established=scale_ok,
+                                  scale_state=self._scale_state(scale_ok, n_factors),
+                                  scale_factors=n_factors)
+        self._scale_states[est.scale_state.value] += 1
+        if est.scale_state is ScaleState.METRIC and self._first_metric_frame is None:
+            self._first_metric_frame = int(est.frame_index)
         with self._lock:
             self._estimates.append(est)
         self._timings_ms["total"].append(1e3 * (time.perf_counter() - t0))
@@ -124,8 +149,7 @@ class SlamPipeline:
                         from_graph = True
                     elif kf_index in kf_vo:
                         T = kf_vo[kf_index] @ T_kf_cam
-                out.append(PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
-                                        est.segment_id, est.scale_established))
+                out.append(dataclasses.replace(est, T_world_cam=T))
                 own.append(anchor is not None)
                 in_graph.append(from_graph)
         return _fill_pose_gaps(out, own, in_graph)
@@ -137,12 +161,15 @@ class SlamPipeline:
         per_frame = {k: float(np.sum(v)) / n for k, v in self.vo.timings_ms.items()}
         per_call = {k: float(np.mean(v)) for k, v in self.vo.timings_ms.items() if v}
         for k, v in self._timings_ms.items():
-            per_frame[k] = float(np.sum(v)) / n
-            per_call[k] = float(np.mean(v)) if v else 0.0
+            per_frame[k] = v.total_ms / n
+            per_call[k] = v.mean_ms
         out = {"frames": c["frames"], "keyframes": c["keyframes"],
                "tracking_losses": c["tracking_losses"], "invalid_frames": c["invalid_frames"],
                "marginalized_keyframes": c["marginalized"], "ba_solves": c["ba_solves"],
                "corrections_applied": self._corrections,
+               "scale_states": {s.value: self._scale_states.get(s.value, 0) for s in ScaleState},
+               "first_metric_frame": self._first_metric_frame,
+               "initial_scale": None if self._initial is None else self._initial.as_dict(),
                "ms_per_frame": per_frame, "ms_per_call": per_call}
         if self.backend is not None and hasattr(self.backend, "stats"):
             try:
@@ -183,8 +210,11 @@ class SlamPipeline:
             self._anchors[a.frame_index] = [a.kf_frame_index, a.T_kf_cam]
 
     def _apply_correction(self, S_new_vo: np.ndarray) -> None:
-        self.vo.apply_similarity(S_new_vo)
+        self._warp_vo(S_new_vo)
         self._corrections += 1
+
+    def _warp_vo(self, S_new_vo: np.ndarray) -> None:
+        self.vo.apply_similarity(S_new_vo)
         s = sim3.scale(S_new_vo)
         # anchors to keyframes still in the VO are in VO units, which just changed by s
         for anchor in self._anchors.values():
@@ -193,11 +223,66 @@ class SlamPipeline:
                 T[:3, 3] *= s
                 anchor[1] = T
 
+    def _scale_state(self, scale_ok: bool, n_factors: int) -> ScaleState:
+        if scale_ok:
+            return ScaleState.METRIC
+        if n_factors > 0 or (self._initial is not None and self._initial.scale is not None):
+            return ScaleState.PROVISIONAL
+        return ScaleState.UNSCALED
+
+    def _initial_scale_step(self, est: PoseEstimate) -> PoseEstimate:
+        """The VO has its first map (this frame): measure the initial keyframe's metric scale and
+        warp the VO to it (:mod:`metricslam.slam.initial_scale`). Only before any keyframe has
+        reached the back end, whose units must not change behind its back."""
+        self._initial_pending = False
+        source = getattr(self.backend, "depth_source", None)
+        kf = self._initial_keyframe() if not self._marginalized else None
+        if kf is None:
+            self._initial = InitialScale(int(est.frame_index), None, 0, 0.0,
+                                         "no initial keyframe left in the VO window")
+        else:
+            graph_config = getattr(self.backend, "config", None)
+            if graph_config is None:
+                from metricslam.slam.graph.config import GraphConfig
+
+                graph_config = GraphConfig()
+            kf_frame, image, uv, xi = kf
+            self._initial = measure_initial_scale(source, image, self.camera, uv, xi, kf_frame,
+                                                  self._initial_config, graph_config)
+        if self._initial.scale is None:
+            log.warning("no initial metric scale at frame %d (%s): poses stay unscaled until the "
+                        "global graph has learned scale factors", est.frame_index, self._initial.error)
+            return est
+        S = np.eye(4)
+        S[:3, :3] *= self._initial.scale
+        self._warp_vo(S)
+        self._scale_history.on_correction(est.frame_index, est.t_ns, self._initial.scale)
+        events = getattr(self.backend, "events", None)
+        if events is not None:
+            events.emit(InitialScaleApplied(self._initial.frame_index, int(est.frame_index),
+                                            self._initial.scale, self._initial.n_landmarks,
+                                            self._initial.wait_ms))
+        log.info("initial metric scale %.4g m per VO unit from %d landmarks of frame %d (waited "
+                 "%.0f ms)", self._initial.scale, self._initial.n_landmarks,
+                 self._initial.frame_index, self._initial.wait_ms)
+        return self._rewarp(est, S)
+
+    def _initial_keyframe(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(frame_index, image, landmark pixels (M, 2), VO inverse depths (M,))`` of the VO
+        window's oldest keyframe (the initialization's reference), or None."""
+        window = self.vo.window
+        with window.lock:
+            if not window.keyframes:
+                return None
+            kf = window.keyframes[0]
+            kids = [lm for lm in self.vo.map.children(kf.kf_id) if lm.has_depth and lm.rho > 0]
+            uv = np.array([lm.uv_host_px for lm in kids], dtype=float).reshape(-1, 2)
+            xi = np.array([lm.rho for lm in kids], dtype=float)
+            return int(kf.frame_index), kf.image, uv, xi
+
     @staticmethod
     def _rewarp(est: PoseEstimate, S_new_vo: np.ndarray) -> PoseEstimate:
-        T = _compose_sim3_rigid(S_new_vo, est.T_world_cam)
-        return PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
-                            est.segment_id, est.scale_established)
+        return dataclasses.replace(est, T_world_cam=_compose_sim3_rigid(S_new_vo, est.T_world_cam))
 
 
 def _compose_sim3_rigid(S_world_kf: np.ndarray, T_kf_cam: np.ndarray) -> np.ndarray:
@@ -240,9 +325,7 @@ def _fill_pose_gaps(poses: list[PoseEstimate], own: list[bool],
             later_is_own = (b is not None and poses[b].segment_id == est.segment_id
                             and poses[a].segment_id != est.segment_id)
             T, valid = poses[b if later_is_own else a].T_world_cam.copy(), False
-        out[k] = PoseEstimate(est.frame_index, est.t_ns, T, est.state, est.is_keyframe,
-                              est.segment_id, est.scale_established, interpolated=interpolated,
-                              pose_valid=valid)
+        out[k] = dataclasses.replace(est, T_world_cam=T, interpolated=interpolated, pose_valid=valid)
     return out
 
 

@@ -62,7 +62,8 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
         if source is not None:
             history.attach(backend.events)
     log.debug("built a %s session: VO %s", config.mode, vo_config.model_dump())
-    return SlamPipeline(camera, vo_config, backend=backend, scale_history=history)
+    return SlamPipeline(camera, vo_config, backend=backend, scale_history=history,
+                        initial_scale=config.initial_scale if config.use_scale else None)
 
 
 def preset_for(seq_dir: str | Path) -> str:

@@ -8,6 +8,7 @@ what none of them owns::
       graph:         GraphConfig   global Sim(3) graph, loop closure (graph.loop), depth request queue
       depth:         DepthConfig   learned scale on/off, in-process ONNX model
       queues:        QueueConfig   frames buffered per camera in the live service
+      initial_scale: InitialScaleConfig  provisional metric scale at VO initialization (live)
       vo_only:       bool          local VO only, no global graph (implies no learned scale)
       deterministic: bool          BA, depth and the global solve in the frame loop
 
@@ -25,6 +26,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.initial_scale import InitialScaleConfig
 from metricslam.slam.vo.config import PresetName, VOConfig
 
 #: VO preset of a live session when neither the config nor the caller names one
@@ -33,6 +35,12 @@ DEFAULT_PRESET: PresetName = "kitti"
 #: global solve run in the frame loop, so the same input gives the same trajectory byte for byte
 DETERMINISTIC_VO: dict[str, Any] = {"ba_in_background": False}
 DETERMINISTIC_GRAPH: dict[str, Any] = {"inline": True}
+#: the live SLAM service's defaults over the classes' (a profile of
+#: :func:`~metricslam.slam.config_file.load_system_config`; a file, the environment or flags still
+#: override it): poses are published as they are made, so the first one should already be metric
+#: (:mod:`metricslam.slam.initial_scale`). Offline ``metricslam run`` keeps the class defaults, so
+#: its (deterministic) trajectories do not change.
+LIVE_PROFILE: dict[str, Any] = {"initial_scale": {"enabled": True}}
 
 
 class VOSelection(BaseModel):
@@ -107,6 +115,7 @@ class SystemConfig(BaseModel):
     graph: GraphConfig = GraphConfig()
     depth: DepthConfig = DepthConfig()
     queues: QueueConfig = QueueConfig()
+    initial_scale: InitialScaleConfig = InitialScaleConfig()
     vo_only: bool = False
     deterministic: bool = False
 

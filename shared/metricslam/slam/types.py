@@ -25,6 +25,21 @@ class TrackingState(str, enum.Enum):
     INVALID_FRAME = "invalid_frame"  # corrupt/blank/unreadable input; live pose: the last known one
 
 
+class ScaleState(str, enum.Enum):
+    """What a pose's scale rests on (docs/global_graph.md, "Metric from the first pose").
+
+    ``UNSCALED``: nothing metric yet — no depth source, it failed, or the VO has no map; the
+    pose is in the VO's arbitrary monocular units. ``PROVISIONAL``: metric from the initial
+    estimate at VO initialization and/or fewer learned scale factors than
+    ``GraphConfig.min_scale_factors_established``. ``METRIC``: the global graph's scale factors
+    have established the scale (``scale_established``).
+    """
+
+    UNSCALED = "unscaled"
+    PROVISIONAL = "provisional"
+    METRIC = "metric"
+
+
 @dataclass(frozen=True)
 class PoseEstimate:
     """The pose of one input frame.
@@ -37,7 +52,11 @@ class PoseEstimate:
         is_keyframe: whether this frame became a keyframe.
         segment_id: increments after each tracking loss (each segment has its own world frame
             until something relates them).
-        scale_established: True when learned scale factors have fixed the metric scale.
+        scale_established: True when learned scale factors have fixed the metric scale
+            (``scale_state`` is then ``METRIC``).
+        scale_state: what the pose's scale rests on (:class:`ScaleState`), at processing time.
+        scale_factors: learned scale measurements in the global graph's latest solve when the
+            frame was processed (0 without learned scale).
         interpolated: the frame had no pose of its own (invalid input, tracking loss, a given-up
             initialization) and ``T_world_cam`` was interpolated at ``t_ns`` between the nearest
             frames before and after it that have one (only :meth:`SlamSession.trajectory` sets it).
@@ -55,6 +74,8 @@ class PoseEstimate:
     scale_established: bool = False
     interpolated: bool = False
     pose_valid: bool = True
+    scale_state: ScaleState = ScaleState.UNSCALED
+    scale_factors: int = 0
 
 
 @dataclass(frozen=True)

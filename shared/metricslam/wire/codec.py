@@ -20,6 +20,7 @@ their names (``t_ns``, ``T_world_cam``, ``fx_px``).
 from __future__ import annotations
 
 import json
+import math
 import struct
 from typing import Any, ClassVar, Literal
 
@@ -28,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError
-from metricslam.slam.types import TrackingState
+from metricslam.slam.types import ScaleState, TrackingState
 from metricslam.wire.keys import check_camera_id
 
 SCHEMA_VERSION = 1
@@ -56,11 +57,14 @@ class ArraySpec(BaseModel):
     def _non_negative(cls, shape: tuple[int, ...]) -> tuple[int, ...]:
         if any(n < 0 for n in shape):
             raise ValueError(f"array dimensions must be >= 0, got {shape}")
+        # exact (Python int) size: int64 products of e.g. [2**61, 8] wrap around to 0 bytes
+        if any(n > MAX_MESSAGE_BYTES for n in shape) or math.prod(shape) > MAX_MESSAGE_BYTES:
+            raise ValueError(f"array of shape {list(shape)} exceeds the {MAX_MESSAGE_BYTES}-byte message limit")
         return shape
 
     @property
     def nbytes(self) -> int:
-        return int(np.prod(self.shape, dtype=np.int64)) * _DTYPES[self.dtype].itemsize
+        return math.prod(self.shape) * _DTYPES[self.dtype].itemsize
 
 
 class Envelope(BaseModel):
@@ -163,6 +167,10 @@ class PoseMessage(Message):
 
     ``T_world_cam``: (4, 4) float64 camera-to-world, metres once ``scale_established``.
     ``processing_ms``: service time from frame receipt to this publish.
+    ``scale_state``: what the pose's scale rests on (``unscaled`` / ``provisional`` / ``metric``,
+    :class:`~metricslam.slam.types.ScaleState`) and ``scale_factors`` the learned scale
+    measurements behind it; both optional (None from senders that predate them: then read
+    ``scale_established`` alone, :meth:`effective_scale_state`).
     """
 
     KIND: ClassVar[str] = "pose"
@@ -176,12 +184,21 @@ class PoseMessage(Message):
     scale_established: bool = False
     processing_ms: float = Field(default=0.0, ge=0)
     t_sent_ns: int | None = None
+    scale_state: ScaleState | None = None
+    scale_factors: int | None = Field(default=None, ge=0)
     T_world_cam: np.ndarray
 
     @field_validator("T_world_cam")
     @classmethod
     def _pose(cls, T: Any) -> np.ndarray:
         return _finite_pose(T, "T_world_cam")
+
+    def effective_scale_state(self) -> ScaleState:
+        """``scale_state``, or for an older sender ``metric`` if ``scale_established`` else
+        ``unscaled`` (it had no provisional scale)."""
+        if self.scale_state is not None:
+            return self.scale_state
+        return ScaleState.METRIC if self.scale_established else ScaleState.UNSCALED
 
 
 class KeyframeMessage(Message):
@@ -214,7 +231,10 @@ class StatusMessage(Message):
     ``depth_reachable``: None until the depth service was tried (or when scale is off); False
     means keyframes get NO learned scale factors until it answers (``depth_error`` says why).
     ``depth_outages``: times the depth service became unreachable since the service started.
+    ``scale_state``: the latest pose's (optional; ``unscaled`` while no depth source answers).
     ``latency_ms_*``: frame receipt -> pose publish inside the service, over a recent window.
+    ``event`` / ``event_detail``: set on one-off statuses about the camera's session
+    (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state").
     """
 
     KIND: ClassVar[str] = "status"
@@ -235,7 +255,10 @@ class StatusMessage(Message):
     depth_reachable: bool | None = None
     depth_error: str | None = None
     depth_outages: int = Field(default=0, ge=0)
+    scale_state: ScaleState | None = None
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
+    event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over"] | None = None
+    event_detail: str | None = Field(default=None, max_length=1000)
 
 
 class TrajectoryMessage(Message):
@@ -256,7 +279,7 @@ class TrajectoryMessage(Message):
 
     @model_validator(mode="after")
     def _consistent(self) -> "TrajectoryMessage":
-        n = len(self.frame_index) if isinstance(self.frame_index, np.ndarray) else -1
+        n = len(self.frame_index) if isinstance(self.frame_index, np.ndarray) and self.frame_index.ndim == 1 else -1
         object.__setattr__(self, "frame_index", _as_array(self.frame_index, "int64", "frame_index", (None,)))
         object.__setattr__(self, "t_ns", _as_array(self.t_ns, "int64", "t_ns", (n,)))
         object.__setattr__(self, "T_world_cam", _as_array(self.T_world_cam, "float64", "T_world_cam", (n, 4, 4)))
@@ -307,7 +330,17 @@ def encode(message: Message) -> bytes:
 
 
 def decode(payload: bytes | bytearray | memoryview) -> Message:
-    """Parse and validate any message; raises :class:`CodecError` saying what is wrong."""
+    """Parse and validate any message; raises :class:`CodecError` saying what is wrong, and
+    nothing else on any bytes (``tests/test_wire_codec_fuzz.py``)."""
+    try:
+        return _decode(payload)
+    except CodecError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- untrusted input: whatever slipped past the checks
+        raise CodecError(f"malformed message ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+def _decode(payload: bytes | bytearray | memoryview) -> Message:
     data = memoryview(payload).cast("B")
     if len(data) < _PREFIX.size:
         raise CodecError(f"message of {len(data)} bytes is shorter than the {_PREFIX.size}-byte prefix")

@@ -13,6 +13,8 @@ Per camera ``<camera_id>``::
     metricslam/<camera_id>/landmarks    out  LandmarksMessage, the local window's after a keyframe
     metricslam/<camera_id>/keyframe_depth out KeyframeDepthMessage, each answered depth request
     metricslam/_service/health          queryable -> JSON of the SLAM service's readiness
+    metricslam/_router/health           queryable -> JSON, answered by the router of ``metricslam up``
+                                             itself (the supervisor's liveness probe)
 
 Camera ids are one key chunk: letters, digits, ``-``, ``_`` and ``.``; they may not start with
 ``_`` (reserved for service keys).
@@ -26,6 +28,7 @@ from metricslam.errors import CodecError
 
 PREFIX = "metricslam"
 HEALTH_KEY = f"{PREFIX}/_service/health"
+ROUTER_HEALTH_KEY = f"{PREFIX}/_router/health"
 _CAMERA_ID_RE = re.compile(r"^[A-Za-z0-9.\-][A-Za-z0-9_.\-]{0,63}$")
 TOPICS = ("frame", "calibration", "pose", "keyframe", "status", "trajectory", "path", "landmarks",
           "keyframe_depth")

@@ -18,8 +18,10 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.errors import CodecError
-from metricslam.slam.types import PoseEstimate, SlamSession, TrackingState
+from metricslam.slam.types import PoseEstimate, ScaleState, SlamSession, TrackingState
 from metricslam.wire.codec import FrameMessage, KeyframeMessage, Message, PoseMessage, StatusMessage, decode_as
+from metricslam_slam.service.continued_session import ContinuedSession
+from metricslam_slam.service.memory import release_memory
 
 log = logging.getLogger(__name__)
 Publish = Callable[[str, Message], None]  # (topic, message)
@@ -36,13 +38,31 @@ class CameraWorker:
             dropped and counted.
         keyframe_images: attach the image to keyframe messages.
         on_estimate: called after each processed frame (the optional live viewer).
+        prior_poses: the camera's earlier poses, asked for on the first valid frame; when there
+            are some, the session continues them (:class:`ContinuedSession`, event
+            ``session_restarted``).
+        on_session: called with each new session (the service attaches the map publisher).
+        on_event: ``(event, detail)`` of the camera's session (``StatusMessage.event``).
+        max_session_keyframes: after this many keyframes the session is closed and a new one
+            continues it (``session_rolled_over``), which bounds its memory; None: never.
     """
 
     def __init__(self, camera_id: str, session_factory: Callable[[str, PinholeCamera], SlamSession],
                  publish: Publish, queue_size: int, keyframe_images: bool = False,
-                 on_estimate: Callable[[str, Frame, PoseEstimate, SlamSession], None] | None = None) -> None:
+                 on_estimate: Callable[[str, Frame, PoseEstimate, SlamSession], None] | None = None,
+                 prior_poses: Callable[[], list[PoseEstimate]] | None = None,
+                 on_session: Callable[[SlamSession], None] | None = None,
+                 on_event: Callable[[str, str], None] | None = None,
+                 max_session_keyframes: int | None = None) -> None:
         self.camera_id = camera_id
         self._factory = session_factory
+        self._prior_poses = prior_poses
+        self._on_session = on_session
+        self._on_event = on_event
+        self._max_session_keyframes = max_session_keyframes
+        self._session_keyframes = 0
+        self._final: list[PoseEstimate] = []  # the trajectory at close, once the session is freed
+        self.last_frame_s = time.monotonic()  # when the latest frame was offered (idle close)
         self._publish = publish
         self._keyframe_images = keyframe_images
         self._on_estimate = on_estimate
@@ -59,6 +79,7 @@ class CameraWorker:
         self.keyframes = 0
         self.last_state: TrackingState | None = None
         self.scale_established = False
+        self.scale_state: ScaleState | None = None
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=500)
         self._done_times: collections.deque[float] = collections.deque(maxlen=50)
         self._last_T = np.eye(4)
@@ -66,14 +87,19 @@ class CameraWorker:
         self._thread.start()
 
     # -- called from zenoh's thread ----------------------------------------------------------
-    def offer(self, payload: bytes) -> None:
-        """Queue a raw frame payload; drops (and counts) the oldest when full."""
+    def offer(self, payload: bytes) -> bool:
+        """Queue a raw frame payload; drops (and counts) the oldest when full. False (nothing
+        queued) once :meth:`close` was called."""
         with self._cond:
+            if self._stop:
+                return False
+            self.last_frame_s = time.monotonic()
             self.frames_received += 1
             if len(self._queue) == self._queue.maxlen:
                 self.queue_drops += 1
             self._queue.append((time.perf_counter_ns(), payload))
             self._cond.notify()
+            return True
 
     # -- worker thread -----------------------------------------------------------------------
     def _run(self) -> None:
@@ -102,9 +128,14 @@ class CameraWorker:
         if msg.camera_id != self.camera_id:
             return self._reject(f"header camera_id {msg.camera_id!r} != key camera id")
         if self._camera is None:
+            prior = self._prior_poses() if self._prior_poses is not None else []
             with self._session_lock:
-                self._session = self._factory(self.camera_id, msg.camera)
+                self._session = self._start_session(msg.camera, prior)
             self._camera = msg.camera
+            if prior:
+                self._event("session_restarted", f"continuing from frame {prior[-1].frame_index} "
+                            f"({len(prior)} earlier poses) as segment "
+                            f"{getattr(self._session, 'first_segment_id', 0)}")
             log.info("camera %s: new SLAM session, %s", self.camera_id, msg.camera)
         elif msg.camera != self._camera:
             return self._reject("intrinsics changed mid-stream; use a new camera id")
@@ -121,9 +152,11 @@ class CameraWorker:
             camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
             state=est.state, is_keyframe=est.is_keyframe, segment_id=est.segment_id,
             scale_established=est.scale_established, processing_ms=latency_ms,
-            t_sent_ns=msg.t_sent_ns, T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
+            t_sent_ns=msg.t_sent_ns, scale_state=est.scale_state, scale_factors=est.scale_factors,
+            T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
         if est.is_keyframe:
             self.keyframes += 1
+            self._session_keyframes += 1
             self._publish("keyframe", KeyframeMessage(
                 camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
                 segment_id=est.segment_id, scale_established=est.scale_established,
@@ -134,14 +167,54 @@ class CameraWorker:
         self.frames_processed += 1
         self.last_state = est.state
         self.scale_established = est.scale_established
+        self.scale_state = est.scale_state
         self._latencies_ms.append(latency_ms)
         self._done_times.append(time.monotonic())
+        if self._max_session_keyframes is not None and self._session_keyframes >= self._max_session_keyframes:
+            self._roll_over()
+
+    def _start_session(self, camera: PinholeCamera, prior: list[PoseEstimate]) -> SlamSession:
+        session = self._factory(self.camera_id, camera)
+        if prior:
+            session = ContinuedSession(session, prior)
+        self._session_keyframes = 0
+        if self._on_session is not None:
+            self._on_session(session)
+        return session
+
+    def _roll_over(self) -> None:
+        """Close the session (its final trajectory is kept) and continue in a new one."""
+        with self._session_lock:
+            old = self._session
+            try:
+                old.close()
+            except Exception:  # noqa: BLE001 -- the camera goes on in a new session regardless
+                log.exception("camera %s: closing the session to roll over failed", self.camera_id)
+            prior = old.trajectory()
+            self._session = self._start_session(self._camera, prior)
+        del old
+        release_memory()
+        self._event("session_rolled_over", f"{self._max_session_keyframes} keyframes in one session; continuing "
+                    f"from frame {prior[-1].frame_index if prior else '-'} as segment "
+                    f"{getattr(self._session, 'first_segment_id', 0)}")
+
+    def _event(self, event: str, detail: str) -> None:
+        if self._on_event is not None:
+            try:
+                self._on_event(event, detail)
+            except Exception:  # noqa: BLE001 -- an event is best effort
+                log.exception("camera %s: publishing %s failed", self.camera_id, event)
+
+    def idle_s(self, now_s: float) -> float:
+        """Seconds since the latest frame was offered (0 while frames are queued)."""
+        with self._cond:
+            return 0.0 if self._queue else now_s - self.last_frame_s
 
     # -- queries -----------------------------------------------------------------------------
     def trajectory(self) -> list[PoseEstimate]:
         """The session's current trajectory (waits for at most the frame being processed)."""
         with self._session_lock:
-            return [] if self._session is None else list(self._session.trajectory())
+            return list(self._final) if self._session is None else list(self._session.trajectory())
 
     def status(self, depth_url: str | None, depth_reachable: bool | None,
                depth_error: str | None, depth_outages: int = 0) -> StatusMessage:
@@ -164,10 +237,12 @@ class CameraWorker:
             latency_ms_p99=None if lat is None else float(np.percentile(lat, 99)),
             tracking_state=self.last_state, scale_established=self.scale_established,
             keyframes=self.keyframes, depth_url=depth_url, depth_reachable=depth_reachable,
-            depth_error=depth_error, depth_outages=depth_outages, session_stats=stats)
+            depth_error=depth_error, depth_outages=depth_outages, scale_state=self.scale_state,
+            session_stats=stats)
 
     def close(self, timeout_s: float = 10.0) -> None:
-        """Finish the queued frames, stop the thread, close the session."""
+        """Finish the queued frames, stop the thread, close and free the session (its final
+        trajectory stays available from :meth:`trajectory`)."""
         with self._cond:
             self._stop = True
             self._cond.notify()
@@ -175,6 +250,9 @@ class CameraWorker:
         with self._session_lock:
             if self._session is not None:
                 self._session.close()
+                self._final = list(self._session.trajectory())
+                self._session = None
+                release_memory()
 
 
 def _flatten(stats: dict, prefix: str = "") -> dict:

@@ -77,6 +77,9 @@ class MapPublisher:
         points = window_landmarks_world(self.session)
         if points is None:
             return
+        T_world_origin = getattr(self.session, "T_world_origin", None)  # a continued session
+        if T_world_origin is not None:
+            points = points @ T_world_origin[:3, :3].T + T_world_origin[:3, 3]
         self._path_dirty.set()  # a new keyframe extends the optimized trajectory
         self._publish("landmarks", LandmarksMessage(
             camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
@@ -51,6 +52,19 @@ class SlamServiceSettings(BaseSettings):
             the diagonal of ``Odometry.pose.covariance`` once metric scale is established (the
             SLAM computes no per-frame marginal covariance; docs/ros2.md says why). Before that
             the position variance is 1e6 m² (scale unknown).
+        max_cameras: cameras served at once; a new camera beyond it is refused (its frames
+            are dropped and counted, a ``camera_refused`` status is published on its status key).
+        camera_idle_timeout_s: a camera with no frame for this long is closed (thread, session
+            and memory freed; a ``camera_closed`` status is published).
+        closed_trajectory_ttl_s / max_closed_trajectories: how long, and for how many closed
+            cameras, the final trajectory stays answerable on ``…/trajectory``.
+        max_session_keyframes: a session that reaches this many keyframes is closed and the
+            camera continues in a new linked session (``session_rolled_over``): bounds a
+            camera's memory (the global graph and place-recognition database grow with
+            keyframes); None: never.
+        state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a
+            restarted service continues a known camera from its last pose
+            (``session_restarted``). None: nothing survives a restart.
     """
 
     model_config = SettingsConfigDict(env_prefix="SLAM_", frozen=True, extra="forbid")
@@ -72,6 +86,12 @@ class SlamServiceSettings(BaseSettings):
     ros2_node_name: str = Field(default="metricslam_slam", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
     ros2_position_sigma_m: float = Field(default=0.5, gt=0)
     ros2_rotation_sigma_rad: float = Field(default=0.02, gt=0)
+    max_cameras: int = Field(default=8, ge=1)
+    camera_idle_timeout_s: float = Field(default=120.0, gt=0)
+    closed_trajectory_ttl_s: float = Field(default=3600.0, ge=0)
+    max_closed_trajectories: int = Field(default=32, ge=0)
+    max_session_keyframes: int | None = Field(default=1000, ge=10)
+    state_dir: Path | None = None
 
 
 def check_retired_environment(env: Mapping[str, str] | None = None) -> None:

@@ -22,14 +22,15 @@ import zenoh
 
 from metricslam.errors import CodecError, ServiceError
 from metricslam.slam.config_file import load_system_config
-from metricslam.slam.system_config import SystemConfig
+from metricslam.slam.system_config import LIVE_PROFILE, SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
 from metricslam_slam.service.camera_worker import CameraWorker
+from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
 from metricslam_slam.service.sessions import SessionFactory, make_session_factory
 from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
-from metricslam_slam.zenoh_config import open_client
+from metricslam_slam.zenoh_config import ZenohAccess, open_client
 
 log = logging.getLogger(__name__)
 
@@ -42,14 +43,16 @@ class SlamService:
         session_factory: overrides the factory built from ``settings`` (tests, embedding).
         depth_source: overrides the HTTP depth source built from ``settings.depth_url``.
         config: what every camera's session is built from (:func:`build_session`); None:
-            :func:`load_system_config` (``$METRICSLAM_CONFIG``, ``METRICSLAM_*`` variables).
+            :func:`load_system_config` over the live profile
+            (:data:`~metricslam.slam.system_config.LIVE_PROFILE`: the initial metric scale on),
+            then ``$METRICSLAM_CONFIG`` and ``METRICSLAM_*`` variables.
     """
 
     def __init__(self, settings: SlamServiceSettings, session_factory: SessionFactory | None = None,
                  depth_source: object | None = None, config: SystemConfig | None = None) -> None:
         check_retired_environment()
         self.settings = settings
-        self.config = config if config is not None else load_system_config()
+        self.config = config if config is not None else load_system_config(profile=LIVE_PROFILE)
         use_scale = self.config.use_scale and settings.session_kind == "pipeline"
         if depth_source is None and use_scale and settings.depth_url:
             from metricslam_slam.service.http_depth import HttpDepthSource
@@ -65,11 +68,11 @@ class SlamService:
         factory = session_factory or make_session_factory(
             settings.session_kind, self.config, depth_source)
         factory = factory if self.viewer is None else self.viewer.observing(factory)
-        self._factory = self._with_map(factory)
+        self._factory = factory
         self._maps: dict[str, MapPublisher] = {}
         self.ros2 = None  # the ROS 2 bridge (settings.ros2), made in start()
-        self._workers: dict[str, CameraWorker] = {}
-        self._workers_lock = threading.Lock()
+        self._cameras = Cameras(settings, self._new_worker, self._put,
+                                lambda worker: worker.status(*self._depth_link()), self._drop_map)
         self._stopped = threading.Event()
         self._stop_requested = threading.Event()
         self._session: zenoh.Session | None = None
@@ -81,6 +84,9 @@ class SlamService:
     def start(self, connect_timeout_s: float = 30.0) -> "SlamService":
         logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per probe is noise
         log.info("SLAM service settings: %s", self.settings.model_dump())
+        access = ZenohAccess()
+        log.info("zenoh access: %s", f"authenticating as {access.user!r}" if access.user
+                 else "no credentials (ZENOH_ACCESS_USER unset)")
         log.info("SLAM system config (%s): %s", self.config.mode, self.config.model_dump(mode="json"))
         self._check_depth_link()
         deadline = time.monotonic() + connect_timeout_s
@@ -124,13 +130,9 @@ class SlamService:
             entity.undeclare()
         if self.ros2 is not None:
             self.ros2.close_inputs()
-        with self._workers_lock:
-            workers = list(self._workers.values())
-        for worker in workers:
-            worker.close()
         if self._status_thread is not None:
             self._status_thread.join(5.0)
-        self._publish_status()
+        self._cameras.close_all()  # finishes queued frames; final trajectories kept / written
         for entity in self._entities[1:]:
             entity.undeclare()
         for map_publisher in list(self._maps.values()):
@@ -161,16 +163,15 @@ class SlamService:
         return self._stop_requested.wait(timeout_s)
 
     # -- inputs ------------------------------------------------------------------------------
-    def _worker(self, camera_id: str) -> CameraWorker:
-        with self._workers_lock:
-            worker = self._workers.get(camera_id)
-            if worker is None:
-                worker = CameraWorker(camera_id, self._factory,
-                                      lambda topic, msg, cid=camera_id: self._put(cid, topic, msg),
-                                      self.config.queues.frames, self.settings.keyframe_images,
-                                      self._on_estimate)
-                self._workers[camera_id] = worker
-            return worker
+    def _new_worker(self, camera_id: str) -> CameraWorker:
+        worker = CameraWorker(
+            camera_id, self._factory, lambda topic, msg: self._put(camera_id, topic, msg),
+            self.config.queues.frames, self.settings.keyframe_images, self._on_estimate,
+            prior_poses=lambda: self._cameras.prior_poses(camera_id),
+            on_session=lambda session: self._attach_map(camera_id, session),
+            on_event=lambda event, detail: self._cameras.publish_event(worker, event, detail),
+            max_session_keyframes=self.settings.max_session_keyframes)
+        return worker
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         try:
@@ -181,24 +182,26 @@ class SlamService:
                 log.warning("dropped a frame on an unusable key: %s", exc)
             return
         if not self._stopped.is_set():
-            self._worker(camera_id).offer(sample.payload.to_bytes())
+            self._cameras.offer(camera_id, sample.payload.to_bytes())
 
     def _offer_frame(self, camera_id: str, payload: bytes) -> None:
         if not self._stopped.is_set():
-            self._worker(camera_id).offer(payload)
+            self._cameras.offer(camera_id, payload)
 
     def _serves(self, camera_id: str) -> bool:
         return self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame")))
 
-    def _with_map(self, factory: SessionFactory) -> SessionFactory:
-        """Wrap a session factory: each new session gets a :class:`MapPublisher` (path,
-        landmarks and keyframe depth of that camera)."""
-        def make(camera_id, camera):
-            session = factory(camera_id, camera)
-            self._maps[camera_id] = MapPublisher(
-                camera_id, session, lambda topic, msg, cid=camera_id: self._put(cid, topic, msg))
-            return session
-        return make
+    def _attach_map(self, camera_id: str, session: object) -> None:
+        """Each new session of a camera gets a :class:`MapPublisher` (path, landmarks and
+        keyframe depth of that camera), replacing the one of its previous session."""
+        self._drop_map(camera_id)
+        self._maps[camera_id] = MapPublisher(
+            camera_id, session, lambda topic, msg: self._put(camera_id, topic, msg))
+
+    def _drop_map(self, camera_id: str) -> None:
+        old = self._maps.pop(camera_id, None)
+        if old is not None:
+            old.close()
 
     def _on_estimate(self, camera_id, frame, est, session) -> None:
         if self.viewer is not None:
@@ -210,6 +213,8 @@ class SlamService:
     def _put(self, camera_id: str, topic: str, message: Message) -> None:
         if self._session is None:
             return
+        if topic == "pose":
+            self._cameras.record_pose(camera_id, message)
         try:
             self._session.put(keys.key(camera_id, topic), encode(message))
         except zenoh.ZError as exc:  # session closing; nothing to do but note it
@@ -224,13 +229,12 @@ class SlamService:
         except CodecError as exc:
             query.reply_err(str(exc).encode())
             return
-        with self._workers_lock:
-            worker = self._workers.get(camera_id)
-        if worker is None:
+        worker = self._cameras.get(camera_id)
+        poses = worker.trajectory() if worker is not None else self._cameras.closed_trajectory(camera_id)
+        if poses is None:
             if self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame"))):
                 query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())
             return  # another worker owns this camera: stay silent
-        poses = worker.trajectory()
         n = len(poses)
         message = TrajectoryMessage(
             camera_id=camera_id, scale_established=bool(poses and poses[-1].scale_established),
@@ -244,13 +248,12 @@ class SlamService:
         query.reply(keys.HEALTH_KEY, json.dumps(self.health()).encode())
 
     def health(self) -> dict:
-        with self._workers_lock:
-            cameras = sorted(self._workers)
+        cameras = self._cameras.ids()
         depth_url, reachable, _, outages = self._depth_link()
         return {"ready": self._session is not None and not self._stopped.is_set(),
                 "cameras": cameras, "unrouted": self.unrouted, "depth_url": depth_url,
                 "depth_reachable": reachable, "depth_outages": outages,
-                "ros2": None if self.ros2 is None else self.ros2.stats()}
+                "ros2": None if self.ros2 is None else self.ros2.stats(), **self._cameras.stats()}
 
     # -- depth link --------------------------------------------------------------------------
     def _depth_link(self) -> tuple[str | None, bool | None, str | None, int]:
@@ -281,13 +284,12 @@ class SlamService:
             probe = getattr(self.depth_source, "probe", None)
             if callable(probe):
                 probe()
+            self._cameras.close_idle()
             self._publish_status()
 
     def _publish_status(self) -> None:
         depth_url, reachable, error, outages = self._depth_link()
-        with self._workers_lock:
-            workers = list(self._workers.values())
-        for worker in workers:
+        for worker in self._cameras.workers():
             try:
                 self._put(worker.camera_id, "status",
                           worker.status(depth_url, reachable, error, outages))

@@ -5,7 +5,9 @@ Starts, in order, a Zenoh router (``python -m metricslam_slam.supervisor.router`
 is ready (router: TCP port open; depth: ``/readyz`` 200; SLAM: answers
 ``metricslam/_service/health``), prints where everything listens, then supervises: a child that
 dies is restarted (like compose's ``restart: unless-stopped``), so killing the depth service
-degrades the stack (no new scale factors) instead of ending it. A child that keeps crashing is
+degrades the stack (no new scale factors) instead of ending it. A child that is alive but no
+longer answers its health probe (:mod:`.liveness`: router query, depth ``/healthz``, SLAM health
+query) for ``hang_timeout_s`` is killed and restarted the same way. A child that keeps crashing is
 restarted with exponential backoff (``restart_delay_s``, doubling up to ``restart_delay_max_s``;
 a child that ran ``stable_after_s`` starts again from ``restart_delay_s``).
 
@@ -36,6 +38,7 @@ import httpx
 
 from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT, depth_url
 from metricslam.errors import ServiceError
+from metricslam_slam.supervisor.liveness import LivenessMonitor, Probe, ZenohProbe, http_healthz
 from metricslam_slam.zenoh_config import check_endpoint
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,10 @@ class Child:
     crashes_in_a_row: int = 0
     started_at_s: float = 0.0  # time.monotonic() of the latest start
     restart_at_s: float | None = None  # when a scheduled restart is due
+    #: liveness probe (True: it answered), None: being alive is enough (:mod:`.liveness`)
+    probe: Probe | None = None
+    last_answer_s: float | None = None  # time.monotonic() of its latest answer to ``probe``
+    hung_kills: int = 0
     _log_file: object = field(default=None, repr=False)
 
     def start(self) -> None:
@@ -71,6 +78,12 @@ class Child:
 
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
+
+    def kill(self) -> None:
+        """SIGKILL and reap (a stopped process cannot act on SIGTERM)."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
 
     def stop(self, grace_s: float) -> None:
         if self.process is None:
@@ -164,6 +177,10 @@ class Stack:
             inherit ``METRICSLAM_CONFIG`` from this process's environment).
         log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log`` (else discarded).
         rerun: live view target of the SLAM service (``web`` or ``FILE.rrd``).
+        hang_timeout_s: a child whose health probe has not answered for this long is killed and
+            restarted (0: no liveness probes, only exits are noticed). A restarted child has
+            ``max(hang_timeout_s, ready_timeout_s)`` to answer for the first time.
+        probe_period_s: time between probe rounds (each probe waits at most this, capped at 2 s).
     """
 
     def __init__(self, zenoh_endpoint: str, depth_port: int | None = DEFAULT_DEPTH_PORT,
@@ -172,15 +189,24 @@ class Stack:
                  log_dir: str | None = None, restart_delay_s: float = 1.0,
                  ready_timeout_s: float = 60.0, rerun: str | None = None,
                  config_path: str | None = None, restart_delay_max_s: float = 30.0,
-                 stable_after_s: float = 30.0) -> None:
+                 stable_after_s: float = 30.0, hang_timeout_s: float = 20.0,
+                 probe_period_s: float = 2.0) -> None:
         check_endpoint(zenoh_endpoint)
+        if hang_timeout_s < 0 or probe_period_s <= 0:
+            raise ServiceError(f"--hang-timeout must be >= 0 and --probe-period > 0 s, got "
+                               f"{hang_timeout_s:g} and {probe_period_s:g}")
         logging.getLogger("httpx").setLevel(logging.WARNING)
         self.zenoh_endpoint = zenoh_endpoint
         self.restart_delay_s = restart_delay_s
         self.restart_delay_max_s = max(restart_delay_max_s, restart_delay_s)
         self.stable_after_s = stable_after_s
         self.ready_timeout_s = ready_timeout_s
+        self.hang_timeout_s = hang_timeout_s
+        self.probe_period_s = probe_period_s
+        probe_timeout_s = min(probe_period_s, 2.0)
+        self._zenoh_probe = ZenohProbe(zenoh_endpoint, probe_timeout_s)
         self._stop = threading.Event()
+        self._stop_requested = False  # request_stop(): a plain flag, safe in a signal handler
         zproto, _, hostport = zenoh_endpoint.partition("/")
         zbind, _, zport = hostport.rpartition(":")
         zhost = "127.0.0.1" if zbind in ("0.0.0.0", "[::]") else zbind
@@ -193,12 +219,14 @@ class Stack:
         self.children = [Child("zenoh-router", py + ["metricslam_slam.supervisor.router", "--listen", zenoh_endpoint],
                                lambda: _port_open(zhost, int(zport)), zenoh_endpoint,
                                binds=[(zbind, int(zport), zsock,
-                                       f"--zenoh-endpoint {zproto}/{zbind}:<PORT>")])]
+                                       f"--zenoh-endpoint {zproto}/{zbind}:<PORT>")],
+                               probe=self._zenoh_probe.router)]
         if self.depth_url is not None and use_scale:
             self.children.append(Child(
                 "depth-service", cli + ["depth-service", "--host", depth_host, "--port", str(depth_port)],
                 lambda: _http_ready(self.depth_url), self.depth_url,
-                binds=[(depth_host, int(depth_port), socket.SOCK_STREAM, "--depth-port <PORT>")]))
+                binds=[(depth_host, int(depth_port), socket.SOCK_STREAM, "--depth-port <PORT>")],
+                probe=lambda: http_healthz(self.depth_url, probe_timeout_s)))
         slam = cli + ["slam-service", "--zenoh-endpoint", zenoh_endpoint, "--session", session_kind,
                       "--depth-url", self.depth_url if (self.depth_url and use_scale) else "none"]
         if not use_scale:
@@ -210,7 +238,8 @@ class Stack:
         if config_path:
             slam += ["--config", str(config_path)]
         self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
-                                   f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"))
+                                   f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})",
+                                   probe=self._zenoh_probe.slam))
         if log_dir:
             for child in self.children:
                 child.log_path = f"{log_dir}/{child.name}.log"
@@ -246,7 +275,7 @@ class Stack:
                                    f"starting{'; see ' + child.log_path if child.log_path else ''}")
             if child.ready():
                 return
-            if time.monotonic() > deadline or self._stop.is_set():
+            if time.monotonic() > deadline or self._stopping():
                 raise ServiceError(f"{child.name} not ready after {self.ready_timeout_s:.0f} s")
             time.sleep(0.2)
 
@@ -258,21 +287,44 @@ class Stack:
             for child in self.children:
                 child.start()
                 self._wait_ready(child)
+                child.last_answer_s = time.monotonic()  # ready is an answer
                 on_ready(child)
         except BaseException:
             self.stop()
             raise
 
-    def supervise(self, on_restart: Callable[[Child], None] = lambda c: None, poll_s: float = 0.5) -> None:
+    def supervise(self, on_restart: Callable[[Child], None] = lambda c: None, poll_s: float = 0.5,
+                  on_hung: Callable[[Child, float], None] = lambda c, s: None) -> None:
         """Restart dead children until :meth:`request_stop`, with exponential backoff for a
-        child that keeps crashing (one child's backoff never delays another's restart)."""
-        while not self._stop.wait(poll_s):
+        child that keeps crashing (one child's backoff never delays another's restart); kill a
+        child silent for ``hang_timeout_s`` first (``on_hung(child, silent_s)``), so it is
+        restarted the same way."""
+        monitor = None
+        if self.hang_timeout_s > 0:
+            monitor = LivenessMonitor(self.children, self.probe_period_s,
+                                      gate={"slam-service": "zenoh-router"}).start()
+        try:
+            self._supervise(on_restart, poll_s, on_hung)
+        finally:
+            if monitor is not None:
+                monitor.stop()
+
+    def _supervise(self, on_restart, poll_s: float, on_hung) -> None:
+        while not self._stop.wait(poll_s) and not self._stop_requested:
             for child in self.children:
-                if self._stop.is_set():
+                if self._stopping():
                     return
+                now = time.monotonic()
+                silent_s = self.hung_for_s(child, now)
+                if silent_s is not None:
+                    log.warning("%s (pid %d) has not answered its health probe for %.1f s (limit "
+                                "%.3g s): hung; killing it", child.name, child.process.pid, silent_s,
+                                self.hang_timeout_s)
+                    child.kill()
+                    child.hung_kills += 1
+                    on_hung(child, silent_s)
                 if child.alive():
                     continue
-                now = time.monotonic()
                 if child.restart_at_s is None:
                     self._schedule_restart(child, now)
                 elif now >= child.restart_at_s:
@@ -280,6 +332,17 @@ class Stack:
                     child.restarts += 1
                     child.start()
                     on_restart(child)
+
+    def hung_for_s(self, child: Child, now_s: float) -> float | None:
+        """Seconds ``child`` (alive, with a probe) has been silent past its limit, else None:
+        ``hang_timeout_s`` since its last answer, or since its start with
+        ``max(hang_timeout_s, ready_timeout_s)`` when it has not answered since."""
+        if self.hang_timeout_s <= 0 or child.probe is None or not child.alive():
+            return None
+        answered = child.last_answer_s is not None and child.last_answer_s >= child.started_at_s
+        silent_s = now_s - (child.last_answer_s if answered else child.started_at_s)
+        limit_s = self.hang_timeout_s if answered else max(self.hang_timeout_s, self.ready_timeout_s)
+        return silent_s if silent_s > limit_s else None
 
     def _schedule_restart(self, child: Child, now: float) -> None:
         ran_s = now - child.started_at_s
@@ -292,10 +355,16 @@ class Stack:
                     f"; its output: {child.log_path}" if child.log_path else "")
 
     def request_stop(self) -> None:
-        self._stop.set()
+        """Ask :meth:`supervise` to return (within its poll period). Safe in a signal handler: it
+        takes no lock (setting the Event there could deadlock on the one ``wait`` holds)."""
+        self._stop_requested = True
+
+    def _stopping(self) -> bool:
+        return self._stop_requested or self._stop.is_set()
 
     def stop(self, grace_s: float = 10.0) -> None:
         """Stop the children in reverse start order."""
         self._stop.set()
         for child in reversed(self.children):
             child.stop(grace_s)
+        self._zenoh_probe.close()

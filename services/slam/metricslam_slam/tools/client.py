@@ -129,6 +129,11 @@ class PoseRecorder:
         """Wait until poses of ``n_frames`` distinct frames arrived."""
         return self.wait_for(lambda r: len(r.poses) >= n_frames, timeout_s)
 
+    def received_frames(self) -> set[int]:
+        """Frame indices whose pose arrived so far."""
+        with self._cond:
+            return set(self.poses)
+
     def latest_status(self) -> StatusMessage | None:
         with self._cond:
             return self.statuses[-1] if self.statuses else None

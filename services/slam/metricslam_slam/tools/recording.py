@@ -1,5 +1,10 @@
 """Turn recorded messages into files: a trajectory (KITTI or TUM), one line per frame, and an
-MCAP recording for Foxglove (:func:`write_mcap`, docs/recordings.md)."""
+MCAP recording for Foxglove (:func:`write_mcap`, docs/recordings.md).
+
+What gets recorded: :func:`unscaled_frames` names the frames whose pose has no metric scale
+(``PoseMessage.scale_state`` ``unscaled``: the VO's arbitrary units, no depth source, or the VO
+had no map yet); ``metricslam poses`` leaves them out unless ``--all`` (:func:`write_poses`).
+"""
 
 from __future__ import annotations
 
@@ -8,8 +13,20 @@ from pathlib import Path
 import numpy as np
 
 from metricslam.errors import ServiceError
+from metricslam.slam.types import ScaleState
 from metricslam.trajectory.io import write_kitti_poses, write_tum
 from metricslam.wire.codec import PoseMessage, TrajectoryMessage
+
+
+def unscaled_frames(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage | None,
+                    n_frames: int) -> list[int]:
+    """Frames ``0..n_frames-1`` whose pose is ``unscaled``: by each live pose's scale state
+    (:meth:`PoseMessage.effective_scale_state`), or, for an optimized ``trajectory``, every frame
+    when its scale is not established (it carries one flag for the whole trajectory)."""
+    if trajectory is not None:
+        return [] if trajectory.scale_established else list(range(n_frames))
+    return [i for i in range(n_frames)
+            if i in poses and poses[i].effective_scale_state() is ScaleState.UNSCALED]
 
 
 def poses_in_order(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage | None,
@@ -36,17 +53,46 @@ def poses_in_order(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage 
 
 
 def write_poses(path: str | Path, fmt: str, poses: dict[int, PoseMessage],
-                trajectory: TrajectoryMessage | None, n_frames: int) -> int:
-    """Write frames ``0..n_frames-1`` to ``path`` as ``kitti`` or ``tum``; returns the count."""
-    t_ns, T = poses_in_order(poses, trajectory, n_frames)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    if fmt == "kitti":
-        write_kitti_poses(path, T)
-    elif fmt == "tum":
-        write_tum(path, t_ns, T)
-    else:
+                trajectory: TrajectoryMessage | None, n_frames: int, skip: list[int] = ()) -> int:
+    """Write frames ``0..n_frames-1`` except ``skip`` to ``path`` as ``kitti`` or ``tum``;
+    returns the number of poses written.
+
+    TUM lines carry their timestamp, so a skipped frame is simply left out. A KITTI file has one
+    line per frame and no frame numbers (evaluation pairs it with the ground truth line by line),
+    so a skipped frame keeps its line with a placeholder, as ``metricslam run`` does for frames
+    without a pose: the previous written pose, or the world origin (identity: where the VO's
+    first keyframe sits) before the first one.
+
+    Raises:
+        ServiceError: a frame has no pose at all, every frame is skipped, or ``fmt`` is unknown.
+    """
+    if fmt not in ("kitti", "tum"):
         raise ServiceError(f"unknown pose format {fmt!r}; use kitti or tum")
-    return n_frames
+    t_ns, T = poses_in_order(poses, trajectory, n_frames)
+    keep = np.ones(n_frames, dtype=bool)
+    keep[[i for i in skip if 0 <= i < n_frames]] = False
+    if not keep.any():
+        raise ServiceError(f"all {n_frames} poses are unscaled (no metric scale: is the depth "
+                           "service reachable? see …/status depth_reachable); --all records them")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    if fmt == "tum":
+        write_tum(path, t_ns[keep], T[keep])
+    else:
+        write_kitti_poses(path, _with_placeholders(T, keep))
+    return int(keep.sum())
+
+
+def _with_placeholders(T: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) ``T`` with every frame not kept replaced by the previous kept pose (identity
+    before the first)."""
+    out = np.array(T, copy=True)
+    last = np.eye(4)
+    for i in range(len(out)):
+        if keep[i]:
+            last = out[i]
+        else:
+            out[i] = last
+    return out
 
 
 def write_mcap(path: str | Path, camera_id: str, recorder, trajectory: TrajectoryMessage | None = None) -> dict:

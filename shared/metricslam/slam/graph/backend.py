@@ -36,6 +36,7 @@ from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.estimator import GlobalEstimator, SolvedPose
 from metricslam.slam.graph.records import LoopRecord
 from metricslam.slam.graph.scale_factor import scale_measurements
+from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import MarginalizedKeyframe
 
 log = logging.getLogger(__name__)
@@ -68,7 +69,7 @@ class GlobalBackend:
         self._busy = 0
         self._stop = False
         self._counters: collections.Counter = collections.Counter()
-        self._depth_ms: list[float] = []
+        self._depth_ms = TimingSummary()
         self._threads: list[threading.Thread] = []
         if not self.config.inline:
             self._threads.append(threading.Thread(target=self._graph_worker, name="graph", daemon=True))
@@ -134,6 +135,11 @@ class GlobalBackend:
         return self.estimator.scale_factors_solved >= self.config.min_scale_factors_established
 
     @property
+    def scale_factors_solved(self) -> int:
+        """Learned scale measurements in the latest solve (0 without a depth source)."""
+        return int(self.estimator.scale_factors_solved) if self.depth_source is not None else 0
+
+    @property
     def loops(self) -> list[LoopRecord]:
         with self._lock:
             return list(self.estimator.loops)
@@ -165,12 +171,9 @@ class GlobalBackend:
 
     def stats(self) -> dict:
         """Counters and timings (ms) of the back end."""
-        def _mean(x: list[float]) -> float:
-            return float(np.mean(x)) if x else 0.0
         # no lock: plain counters and list copies (a status publisher must not wait on a solve)
         est = self.estimator
         loops = list(est.loops)
-        solve_ms = list(est.solve_ms)
         counters = {**est.counters, **self._counters}
         return {
             "keyframes": est.graph.n_keyframes,
@@ -185,10 +188,10 @@ class GlobalBackend:
                                                "corrections", "segment_links", "epoch_mismatches")},
             "graph_rebuilds": est.graph.n_rebuilds,
             "graph_stabilized": est.graph.n_stabilized,
-            "depth_ms_mean": _mean(list(self._depth_ms)),
-            "solve_ms_mean": _mean(solve_ms),
-            "solve_ms_max": float(max(solve_ms)) if solve_ms else 0.0,
-            "loop_ms_mean": _mean(list(est.loop_ms)),
+            "depth_ms_mean": self._depth_ms.mean_ms,
+            "solve_ms_mean": est.solve_ms.mean_ms,
+            "solve_ms_max": est.solve_ms.max_ms,
+            "loop_ms_mean": est.loop_ms.mean_ms,
             "scale_established": self.scale_established,
         }
 

@@ -36,6 +36,7 @@ from metricslam.slam.graph.odometry import (
 )
 from metricslam.slam.graph.records import KeyframeRecord, LoopRecord
 from metricslam.slam.graph.sim3_graph import GlobalPoseGraph
+from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import MarginalizedKeyframe
 
 log = logging.getLogger("metricslam.slam.graph.backend")
@@ -73,8 +74,8 @@ class GlobalEstimator:
         self.loops_verified = 0
         self.scale_factors_solved = 0
         self.counters: collections.Counter = collections.Counter()
-        self.solve_ms: list[float] = []
-        self.loop_ms: list[float] = []
+        self.solve_ms = TimingSummary()  # count / total / max, constant memory
+        self.loop_ms = TimingSummary()
         self.solved: SolvedPose | None = None  # newest solve's pose, taken by the scheduler
         self._records: dict[int, KeyframeRecord] = {}
         self._last_of_segment: dict[int, int] = {}

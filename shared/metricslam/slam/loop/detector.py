@@ -8,7 +8,8 @@ score reaches ``min_score_ratio`` times the score of the query against its immed
 (:func:`metricslam.slam.loop.corners.verify_corners`; corner depth from the network's metric
 inverse-depth map in scale mode, from triangulation against the previous keyframe without it),
 falling back to the VO-landmark verification (:func:`metricslam.slam.loop.verification.verify`)
-when a keyframe has no corner depth.
+when a keyframe has no corner depth. The database keeps the newest ``max_database_keyframes``
+indexed keyframes; older ones are forgotten (bounded memory on a long drive).
 """
 
 from __future__ import annotations
@@ -123,6 +124,7 @@ class LoopDetector:
         self._features[kf_id] = landmark_features(self._orb_landmarks, gray, camera, landmarks_uv_px,
                                                   landmarks_inv_depth, extra_uv_px=extra)
         self._order.append(kf_id)
+        self._forget_beyond_cap()
         if self._vocab is None:
             self._pending.append((kf_id, desc))
             if len(self._pending) >= self.config.vocabulary_train_keyframes:
@@ -163,6 +165,18 @@ class LoopDetector:
                 self.n_verified += 1
                 break
         return out
+
+    def _forget_beyond_cap(self) -> None:
+        """Forget the oldest indexed keyframes beyond ``max_database_keyframes``. Positions in
+        the bag-of-words database shift down, and so does the last loop's position."""
+        while len(self._order) > self.config.max_database_keyframes:
+            old = self._order.pop(0)
+            self._features.pop(old, None)
+            self._corners.pop(old, None)
+            self._pending = [(k, d) for k, d in self._pending if k != old]
+            if self._db is not None and len(self._db):
+                self._db.forget_oldest()
+                self._last_loop_at -= 1
 
     def _corner_features(self, uv, desc, camera, shape_hw, lm_uv, lm_xi, inv_depth_map, T_prevkf_kf,
                          prev) -> corner_mod.CornerFeatures:

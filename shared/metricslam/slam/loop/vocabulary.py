@@ -105,3 +105,11 @@ class BowDatabase:
 
     def row(self, i: int) -> np.ndarray:
         return self._M[i]
+
+    def forget_oldest(self) -> int:
+        """Drop the oldest row (positions of the others shift down by one); its keyframe id."""
+        kf_id = self._ids.pop(0)
+        n = len(self._ids)
+        self._M[:n] = self._M[1:n + 1]
+        self._M[n] = 0.0
+        return kf_id
