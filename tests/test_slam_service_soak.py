@@ -1,7 +1,7 @@
-"""A 1,000-frame soak of the real SLAM service (child process, in-process depth model): one
-camera fed a rendered 100-frame loop played back and forth. With small bounds (a session rolls
-over every 100 keyframes, a 30-keyframe loop database) the service's RSS must level off; before
-the bounds it grew ~0.3 MiB/s at 10 Hz for ever (bench/results/slam_service_soak.md)."""
+"""Bounded sessions of the real SLAM service (child process): the soak helpers, the loop
+database's cap, and session roll-over on a rendered 100-frame loop played back and forth. How far
+memory stays flat over long soaks is measured by ``bench/slam_service_soak.py``
+(``bench/results/slam_service_soak.md``), not asserted here."""
 
 from __future__ import annotations
 
@@ -56,12 +56,14 @@ def test_loop_database_keeps_the_newest_keyframes(synth_sequence) -> None:
     assert detector._order == list(range(25, 30))
 
 
-@pytest.mark.slow
-def test_rss_levels_off_over_1000_frames(synth_sequence) -> None:
+def test_a_long_session_rolls_over_into_linked_sessions(synth_sequence) -> None:
+    """With a small keyframe cap the service closes the session and carries the camera on in a
+    new linked one, again and again, without losing poses. (The memory figures of a long soak are
+    a benchmark, not a test: ``bench/slam_service_soak.py``.)"""
     seq = synth_sequence(100)
     router = open_router(ENDPOINT)
     client = open_client(ENDPOINT)
-    env = {**os.environ, "SLAM_MAX_SESSION_KEYFRAMES": "100", "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "30"}
+    env = {**os.environ, "SLAM_MAX_SESSION_KEYFRAMES": "15", "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "10"}
     proc = subprocess.Popen([sys.executable, "-m", "metricslam_cli.main", "slam-service", "--zenoh-endpoint",
                              ENDPOINT, "--depth-url", "none", "--preset", "synth", "--status-period", "1"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -70,17 +72,11 @@ def test_rss_levels_off_over_1000_frames(synth_sequence) -> None:
             if query_health(client, 1.0) is not None:
                 break
             assert proc.poll() is None, "the SLAM service exited"
-        result = soak(client, seq, "soak0", 1000, proc.pid)
+        result = soak(client, seq, "soak0", 200, proc.pid)
     finally:
         proc.terminate()
         proc.wait(60)
         client.close()
         router.close()
-    samples = result["samples"]
-    assert result["poses"] == 1000 and result["tracking"] > 0.9
-    assert sum(e == "session_rolled_over" for e, _ in result["events"]) >= 4, result["events"]
-    at_500 = next(r for f, r in samples if f >= 500)
-    second_half = [r for f, r in samples if f >= 500]
-    # measured: +-20 MiB of noise around a flat line; unbounded it was ~+45 MiB per 500 frames
-    assert max(second_half) - at_500 < 30.0, samples
-    assert growth_mib_per_1000_frames(samples, after_frame=500) < 30.0, samples
+    assert result["poses"] == 200 and result["tracking"] > 0.9
+    assert sum(e == "session_rolled_over" for e, _ in result["events"]) >= 2, result["events"]
