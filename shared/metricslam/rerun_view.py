@@ -30,6 +30,7 @@ import numpy as np
 from metricslam.datasets.base import Frame
 from metricslam.errors import ConfigError
 from metricslam.slam.events import ScaleMeasured
+from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,7 @@ class RerunView:
         if est.is_keyframe:
             self._keyframes.setdefault(cid, []).append(T[:3, 3].copy())
             rec.log(f"{base}/keyframes", rr.Points3D(np.array(self._keyframes[cid]), radii=0.3))
-            points = _landmarks_world(session)
+            points = window_landmarks_world(session)
             if points is not None and len(points):
                 rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
 
@@ -119,17 +120,3 @@ class RerunView:
     def close(self) -> None:
         self._rec.flush()
         self._rec.disconnect()
-
-
-def _landmarks_world(session: object) -> np.ndarray | None:
-    """Depth-known landmarks of the local window in the VO world frame, if the session exposes
-    a LocalVO (``SlamPipeline.vo``); None otherwise."""
-    vo = getattr(session, "vo", None)
-    if vo is None:
-        return None
-    window = vo.window
-    with window.lock:
-        lm_map = vo.map
-        lm_ids = np.array(list(lm_map.landmarks), dtype=np.int64)
-        _, points = lm_map.points_world(lm_ids, vo.keyframe_poses())
-    return points

@@ -25,21 +25,10 @@ import numpy as np
 from metricslam.datasets.base import Frame
 from metricslam.ros2.mcap_log import McapLog
 from metricslam.slam.events import LoopAccepted, ScaleMeasured, Solved, WarpApplied
+from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
-
-
-def window_landmarks_world(session: object) -> np.ndarray | None:
-    """(N, 3) depth-known landmarks of the session's local window in its world frame (the VO
-    world, which warps keep metric), or None when the session has no local VO (``.vo``)."""
-    vo = getattr(session, "vo", None)
-    if vo is None:
-        return None
-    with vo.window.lock:
-        lm_ids = np.array(list(vo.map.landmarks), dtype=np.int64)
-        _, points = vo.map.points_world(lm_ids, vo.keyframe_poses())
-    return np.asarray(points, dtype=np.float64).reshape(-1, 3)
 
 
 def valid_trajectory(session: object) -> tuple[np.ndarray, np.ndarray]:

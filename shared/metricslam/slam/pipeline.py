@@ -178,6 +178,14 @@ class SlamPipeline:
                 log.exception("back end stats failed")
         return out
 
+    def window_landmarks_world(self) -> np.ndarray:
+        """(N, 3) depth-known landmarks of the local window in the VO world frame (which the
+        warps keep metric) — what the viewers and the ROS 2 / MCAP outputs draw."""
+        with self.vo.window.lock:
+            lm_ids = np.array(list(self.vo.map.landmarks), dtype=np.int64)
+            _, points = self.vo.map.points_world(lm_ids, self.vo.keyframe_poses())
+        return np.asarray(points, dtype=np.float64).reshape(-1, 3)
+
     def scale_history(self) -> dict:
         """The scale estimate over time (JSON-ready; units in :mod:`metricslam.slam.scale_history`).
 
@@ -342,3 +350,10 @@ def _interpolate_pose(a: PoseEstimate, b: PoseEstimate, t_ns: int, steps_from_a:
     T[:3, :3] = R_a @ so3.exp(alpha * so3.log(R_a.T @ R_b))
     T[:3, 3] = (1.0 - alpha) * a.T_world_cam[:3, 3] + alpha * b.T_world_cam[:3, 3]
     return T
+
+
+def window_landmarks_world(session: object) -> np.ndarray | None:
+    """:meth:`SlamPipeline.window_landmarks_world` of any session that has a local window, else None
+    (e.g. the service's identity sessions)."""
+    method = getattr(session, "window_landmarks_world", None)
+    return method() if method is not None else None

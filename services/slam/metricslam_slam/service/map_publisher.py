@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from metricslam.datasets.base import Frame
-from metricslam.ros2.session_log import window_landmarks_world
+from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.events import LoopAccepted, ScaleMeasured, Solved, WarpApplied
 from metricslam.slam.types import PoseEstimate
 from metricslam.wire.codec import Message, TrajectoryMessage
