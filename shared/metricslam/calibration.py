@@ -282,6 +282,19 @@ def _from_sensor_yaml(doc: dict, path: object) -> Calibration:
     return make_calibration(K, w, h, model if len(coeffs) else "none", coeffs, path=path)
 
 
+def reader_camera(calibration: Calibration | None, K_file: np.ndarray, width_px: int, height_px: int,
+                  calib_path: Path) -> tuple[PinholeCamera, tuple[np.ndarray, np.ndarray] | None]:
+    """The camera (and undistortion maps) a dataset reader uses: the user's ``calibration``
+    (``--calib``) wins over the intrinsics ``K_file`` (3x3 or 3x4) its own ``calib_path`` gives."""
+    if calibration is not None:
+        log.info("%s: intrinsics from %s instead of %s", calib_path.parent, calibration.source, calib_path.name)
+        return camera_and_maps(calibration, width_px, height_px)
+    try:
+        return PinholeCamera.from_K(K_file, width_px, height_px), None
+    except CameraError as exc:
+        raise CalibrationError(f"its intrinsics are not a valid camera: {exc}", calib_path) from exc
+
+
 def camera_and_maps(calibration: Calibration, width_px: int, height_px: int
                     ) -> tuple[PinholeCamera, tuple[np.ndarray, np.ndarray] | None]:
     """What a dataset reader needs from a calibration for images of ``width × height``: the

@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metricslam.calibration import Calibration, camera_and_maps
-from metricslam.camera import PinholeCamera
+from metricslam.calibration import Calibration, reader_camera
 from metricslam.datasets._common import (
     NOMINAL_PERIOD_NS,
     FileSequence,
@@ -30,7 +29,7 @@ from metricslam.datasets._common import (
     list_images,
     read_float_fields,
 )
-from metricslam.errors import CalibrationError, CameraError, DatasetError, TrajectoryError
+from metricslam.errors import CalibrationError, DatasetError, TrajectoryError
 from metricslam.trajectory.io import read_kitti_poses, seconds_text_to_ns
 
 log = logging.getLogger(__name__)
@@ -127,15 +126,7 @@ class KittiOdometry(FileSequence):
         calib = read_kitti_calib(calib_path)
         w, h = image_size(images[0])
         P0 = calib["P0"]
-        maps = None
-        if calibration is not None:
-            log.info("%s: intrinsics from %s instead of calib.txt P0", seq_dir, calibration.source)
-            camera, maps = camera_and_maps(calibration, w, h)
-        else:
-            try:
-                camera = PinholeCamera.from_K(P0, w, h)
-            except CameraError as exc:
-                raise CalibrationError(f"P0 is not a valid camera: {exc}", calib_path) from exc
+        camera, maps = reader_camera(calibration, P0, w, h, calib_path)
         times = seq_dir / "times.txt"
         if times.is_file():
             stamps = read_times(times, len(images))

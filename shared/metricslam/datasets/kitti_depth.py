@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metricslam.calibration import Calibration, camera_and_maps
-from metricslam.camera import PinholeCamera
+from metricslam.calibration import Calibration, reader_camera
 from metricslam.datasets._common import (
     NOMINAL_PERIOD_NS,
     FileSequence,
@@ -27,7 +26,7 @@ from metricslam.datasets._common import (
     list_images,
     read_float_fields,
 )
-from metricslam.errors import CalibrationError, CameraError, DatasetError
+from metricslam.errors import CalibrationError, DatasetError
 
 
 def read_raw_calib(path: Path, camera_key: str = "02") -> np.ndarray:
@@ -99,14 +98,7 @@ class KittiRawDepth(FileSequence):
         calib_path = folder / "calib.txt"
         K = read_raw_calib(calib_path, camera_key)
         w, h = image_size(images[0])
-        maps = None
-        if calibration is not None:
-            camera, maps = camera_and_maps(calibration, w, h)
-        else:
-            try:
-                camera = PinholeCamera.from_K(K, w, h)
-            except CameraError as exc:
-                raise CalibrationError(f"invalid intrinsics: {exc}", calib_path) from exc
+        camera, maps = reader_camera(calibration, K, w, h, calib_path)
         depth_dir = folder / f"depth_{camera_key}"
         if not depth_dir.is_dir():
             raise DatasetError("depth folder does not exist (uint16 PNGs, metres × 256)", depth_dir)
