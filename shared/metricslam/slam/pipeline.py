@@ -158,11 +158,11 @@ class SlamPipeline:
         """Frames, keyframes, tracking losses and mean ms per frame of each stage."""
         c = dict(self.vo.counters)
         n = max(c["frames"], 1)
-        per_frame = {k: float(np.sum(v)) / n for k, v in self.vo.timings_ms.items()}
-        per_call = {k: float(np.mean(v)) for k, v in self.vo.timings_ms.items() if v}
-        for k, v in self._timings_ms.items():
+        per_frame, per_call = {}, {}
+        for k, v in {**self.vo.timings_ms, **self._timings_ms}.items():
             per_frame[k] = v.total_ms / n
-            per_call[k] = v.mean_ms
+            if len(v):
+                per_call[k] = v.mean_ms
         out = {"frames": c["frames"], "keyframes": c["keyframes"],
                "tracking_losses": c["tracking_losses"], "invalid_frames": c["invalid_frames"],
                "marginalized_keyframes": c["marginalized"], "ba_solves": c["ba_solves"],

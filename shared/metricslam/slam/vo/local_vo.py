@@ -25,6 +25,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.geometry import se3, sim3, so3
+from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
 from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.config import VOConfig
@@ -73,7 +74,7 @@ class LocalVO:
         self.config = config
         self.camera = camera
         self.consumer = consumer
-        self.timings_ms: dict[str, list[float]] = defaultdict(list)
+        self.timings_ms: dict[str, TimingSummary] = defaultdict(TimingSummary)  # constant memory
         self.counters = {"frames": 0, "keyframes": 0, "tracking_losses": 0, "invalid_frames": 0,
                          "marginalized": 0, "ba_solves": 0}
         self.frontend = KLTFrontend(config, camera)

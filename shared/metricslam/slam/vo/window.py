@@ -23,6 +23,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.geometry import se3, sim3
+from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import MarginalizedKeyframe
 from metricslam.slam.vo.ba import bundle_adjust
 from metricslam.slam.vo.config import VOConfig
@@ -56,7 +57,7 @@ class SlidingWindow:
     """
 
     def __init__(self, config: VOConfig, camera: PinholeCamera, counters: dict,
-                 timings_ms: dict[str, list[float]]) -> None:
+                 timings_ms: dict[str, TimingSummary]) -> None:
         self.config = config
         self.camera = camera
         self.lock = threading.RLock()
