@@ -17,6 +17,10 @@ class AugmentConfig(BaseModel):
     p_flip: float = Field(0.5, ge=0, le=1)
     gamma_range: tuple[float, float] = (0.8, 1.2)
     brightness_range: tuple[float, float] = (0.7, 1.4)
+    #: scale augmentation (data.zoom): probability per pair and the magnification range (>= 1,
+    #: log-uniform); labels scale with the magnification. Off by default.
+    p_zoom: float = Field(0.0, ge=0, le=1)
+    zoom_range: tuple[float, float] = (1.0, 1.0)
 
 
 class LossConfig(BaseModel):

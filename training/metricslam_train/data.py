@@ -15,7 +15,8 @@ output of ``metricslam synth`` share it.
   ``d_frac`` for the training baseline; photometric warps on this pair use ``d_frac·ratio``.
 
 :class:`StereoPairs` serves (left, right, bm_left, bm_right, ratio) tensors and
-:func:`augment` applies flip-with-swap, gamma and brightness on a batch.
+:func:`augment` applies flip-with-swap, gamma and brightness on a batch; :func:`zoom` magnifies a
+batch about its centre row with the labels scaled to match (scale augmentation).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from metricslam.errors import TrainingError
 from metricslam.stereo import block_matching_pair
@@ -287,3 +289,38 @@ def augment(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_r
     new_left = (new_left.clamp(0, 1) ** gamma * bright).clamp(0, 1)
     new_right = (new_right.clamp(0, 1) ** gamma * bright).clamp(0, 1)
     return new_left, new_right, new_bm_left, new_bm_right
+
+
+def zoom(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_right: torch.Tensor,
+         generator: torch.Generator | None = None, p_zoom: float = 0.0,
+         zoom_range: tuple[float, float] = (1.0, 1.0)):
+    """Scale augmentation (B,1,H,W): magnify a pair by ``s`` and multiply its d_frac labels by ``s``.
+
+    For each sample, with probability ``p_zoom``, ``s`` is drawn log-uniformly from ``zoom_range``
+    (>= 1) and the central ``1/s`` of both images is resampled to the full size (bilinear; labels
+    nearest, 0 stays invalid). The window keeps the centre row (the horizon, i.e. the camera's
+    pitch and height cues, stays where the contract's camera has it) and moves sideways at random
+    within the image (a yaw, harmless). Why the labels scale by ``s``: a camera of focal ``s·f``
+    sees a point ``(X, Y, Z)`` where a camera of focal ``f`` sees ``(X, Y, Z/s)`` (u = s·f·X/Z =
+    f·X/(Z/s)); the magnified image is therefore exactly the original camera's view of a scene whose
+    depths are divided by ``s`` — same ground-plane geometry (camera height), disparities ×s. Both
+    images of the pair use the same window, so in-image disparities scale by ``s`` like the labels
+    and the photometric warp stays consistent. ``s = 1`` returns the inputs unchanged.
+    """
+    b = left.shape[0]
+    lo, hi = zoom_range
+    if p_zoom <= 0 or hi <= 1.0:
+        return left, right, bm_left, bm_right
+    u = torch.rand(b, generator=generator)
+    s = torch.exp(np.log(lo) + (np.log(hi) - np.log(lo)) * u)
+    s = torch.where(torch.rand(b, generator=generator) < p_zoom, s, torch.ones_like(s))
+    shift = (torch.rand(b, generator=generator) * 2 - 1) * (1 - 1 / s)
+    theta = torch.zeros(b, 2, 3, dtype=left.dtype)
+    theta[:, 0, 0] = 1 / s
+    theta[:, 1, 1] = 1 / s
+    theta[:, 0, 2] = shift
+    grid = F.affine_grid(theta, list(left.shape), align_corners=False)
+    warp = lambda x, mode: F.grid_sample(x, grid, mode=mode, padding_mode="border", align_corners=False)  # noqa: E731
+    scale = s.view(b, 1, 1, 1).to(left.dtype)
+    return (warp(left, "bilinear"), warp(right, "bilinear"),
+            warp(bm_left, "nearest") * scale, warp(bm_right, "nearest") * scale)

@@ -20,7 +20,7 @@ import yaml
 
 from metricslam.errors import TrainingError
 from metricslam_train.config import TrainConfig
-from metricslam_train.data import StereoPairs, augment, build_cache, build_depth_cache, read_stereo_sequence
+from metricslam_train.data import StereoPairs, augment, build_cache, build_depth_cache, read_stereo_sequence, zoom
 from metricslam_train.export import git_commit
 from metricslam_train.losses import LossWeights, total_loss
 from metricslam_train.network import PyramidDepthNet, count_parameters
@@ -220,6 +220,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             a = cfg.augment
             left, right, bm_l, bm_r = augment(left, right, bm_l, bm_r, gen, a.p_flip, a.gamma_range,
                                               a.brightness_range)
+            left, right, bm_l, bm_r = zoom(left, right, bm_l, bm_r, gen, a.p_zoom, a.zoom_range)
             left, right, bm_l, bm_r, ratio, stereo = (t.to(device) for t in (left, right, bm_l, bm_r, ratio, stereo))
             t0 = time.perf_counter()
             outputs = net((left - cfg.norm_mean) / cfg.norm_std)

@@ -1,0 +1,69 @@
+"""Scale augmentation (metricslam_train.data.zoom): known answers on a synthetic rectified pair."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from metricslam_train.data import zoom  # noqa: E402
+
+H, W = 64, 128
+
+
+def _pair(disp_px: float):
+    """Left = a horizontal sinusoid, right = left shifted by ``disp_px`` (rectified, constant disparity)."""
+    u = np.arange(W, dtype=np.float32)
+    row = 0.5 + 0.4 * np.sin(u / 3.0) * np.cos(u / 7.0)
+    left = np.tile(row, (H, 1))
+    right = np.tile(0.5 + 0.4 * np.sin((u + disp_px) / 3.0) * np.cos((u + disp_px) / 7.0), (H, 1))
+    as_t = lambda a: torch.from_numpy(a)[None, None]  # noqa: E731
+    labels = np.full((H, W), disp_px / W, np.float32)
+    labels[:, :10] = 0.0  # invalid stays invalid
+    return as_t(left), as_t(right), as_t(labels), as_t(labels.copy())
+
+
+def _best_shift(left: np.ndarray, right: np.ndarray) -> float:
+    """Disparity (px) that best maps right onto left along the central row, 0.05 px steps."""
+    u = np.arange(W, dtype=np.float64)
+    row_l, row_r = left[H // 2, 20:-20], right[H // 2]
+    shifts = np.arange(0.0, 12.0, 0.05)
+    errs = [np.mean((row_l - np.interp(u[20:-20] - d, u, row_r)) ** 2) for d in shifts]
+    return float(shifts[int(np.argmin(errs))])
+
+
+def test_zoom_off_returns_inputs():
+    pair = _pair(3.0)
+    out = zoom(*pair, torch.Generator().manual_seed(0), p_zoom=0.0, zoom_range=(1.0, 2.0))
+    for a, b in zip(pair, out, strict=True):
+        assert a is b
+
+
+def test_zoom_scales_labels_and_image_disparity_alike():
+    left, right, bl, br = _pair(3.0)
+    gen = torch.Generator().manual_seed(1)
+    zl, zr, zbl, zbr = zoom(left, right, bl, br, gen, p_zoom=1.0, zoom_range=(2.0, 2.0))
+    valid = zbl[0, 0] > 0
+    # labels: every valid value is exactly twice the original d_frac
+    assert torch.allclose(zbl[0, 0][valid], torch.full_like(zbl[0, 0][valid], 2 * 3.0 / W))
+    assert torch.allclose(zbr[0, 0][zbr[0, 0] > 0], torch.full_like(zbr[0, 0][zbr[0, 0] > 0], 2 * 3.0 / W))
+    # the images' own disparity doubled too (the photometric warp stays consistent)
+    assert _best_shift(left[0, 0].numpy(), right[0, 0].numpy()) == pytest.approx(3.0, abs=0.1)
+    assert _best_shift(zl[0, 0].numpy(), zr[0, 0].numpy()) == pytest.approx(6.0, abs=0.2)
+
+
+def test_zoom_keeps_the_centre_row_and_invalid_labels():
+    left, right, bl, br = _pair(2.0)
+    ramp = torch.linspace(0, 1, H).view(1, 1, H, 1).expand(1, 1, H, W).contiguous()
+    gen = torch.Generator().manual_seed(2)
+    zl, _, zbl, _ = zoom(ramp, right, bl, br, gen, p_zoom=1.0, zoom_range=(1.5, 1.5))
+    # a vertical ramp magnified about the centre row: the centre value stays, spread 1.5x (slope /1.5)
+    centre = zl[0, 0, :, W // 2]
+    assert float(centre[H // 2 - 1: H // 2 + 1].mean()) == pytest.approx(0.5, abs=0.02)
+    slope_before = float(ramp[0, 0, H // 2 + 8, 0] - ramp[0, 0, H // 2 - 8, 0])
+    slope_after = float(centre[H // 2 + 8] - centre[H // 2 - 8])
+    assert slope_after == pytest.approx(slope_before / 1.5, rel=0.05)
+    # only zeros and scaled valid values, nothing in between (nearest sampling of a sparse map)
+    values = set(np.unique(np.round(zbl.numpy() * W, 4)))
+    assert values <= {0.0, 3.0}
