@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from bench.machine import command_line
+from metricslam.camera import PinholeCamera
 from metricslam.datasets.kitti import KittiOdometry
 from metricslam.datasets import open_sequence
 from metricslam.depth import DepthModel, sample_map
@@ -57,9 +58,9 @@ def flat_road_depth(v_px: np.ndarray, fy_px: float, cy_px: float, camera_height_
     return np.clip(z, 1e-3, max_depth_m)
 
 
-def predict_at(model: DepthModel, image: np.ndarray, fx_px: float, uv_px: np.ndarray,
+def predict_at(model: DepthModel, image: np.ndarray, camera: PinholeCamera, uv_px: np.ndarray,
                max_depth_m: float) -> np.ndarray:
-    inv = model.predict_inv_depth(image, fx_px)
+    inv = model.predict_inv_depth(image, camera=camera)  # v1 models use camera.fx_px only
     inv_at = sample_map(inv.inv_depth_per_m, uv_px, (inv.image_width_px, inv.image_height_px))
     return np.clip(1.0 / np.maximum(inv_at, 1.0 / max_depth_m), 1e-3, max_depth_m)
 
@@ -116,7 +117,7 @@ def evaluate_lidar(model: DepthModel, folder: Path, args) -> dict:
         v, u = np.nonzero((frame.depth_m >= args.min_depth_m) & (frame.depth_m <= args.max_depth_m))
         true = frame.depth_m[v, u].astype(np.float64)
         uv = np.stack([u, v], 1).astype(np.float64)
-        pred = predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m)
+        pred = predict_at(model, frame.image, cam, uv, args.max_depth_m)
         flat = flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m)
         size = (frame.image.shape[1], frame.image.shape[0])
         oracles.append(l3_oracle_depth(true, uv, size, grid_hw, args.max_depth_m))
@@ -161,7 +162,7 @@ def evaluate_stereo(model: DepthModel, seq_dir: Path, args) -> dict:
         v, u = np.nonzero((ref >= args.min_depth_m) & (ref <= args.max_depth_m))
         true = ref[v, u]
         uv = np.stack([u, v], 1).astype(np.float64)
-        preds.append(predict_at(model, frame.image, cam.fx_px, uv, args.max_depth_m))
+        preds.append(predict_at(model, frame.image, cam, uv, args.max_depth_m))
         flats.append(flat_road_depth(v.astype(float), cam.fy_px, cam.cy_px, args.camera_height_m, args.max_depth_m))
         oracles.append(l3_oracle_depth(true, uv, (ref.shape[1], ref.shape[0]), grid_hw, args.max_depth_m))
         trues.append(true)

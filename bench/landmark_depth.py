@@ -184,7 +184,7 @@ def landmark_samples(seq, model: DepthModel, stride: int = 3, gap: int = 3, min_
         pairs += 1
         uv, z = uv_a[keep], z[keep]
         size = (a.image.shape[1], a.image.shape[0])
-        net = model.predict_inv_depth(a.image, fx_px=cam.fx_px).inv_depth_per_m
+        net = model.predict_inv_depth(a.image, camera=cam).inv_depth_per_m
         with np.errstate(divide="ignore", invalid="ignore"):
             inv_net = sample_map(net, uv, size)
             z_net = np.where(inv_net > 0, 1.0 / inv_net, np.nan)

@@ -71,7 +71,7 @@ def network_error(seq_dir: Path, model: DepthModel, step: int, frames_per_kf: fl
         v, u = np.nonzero((z_true >= 5.0) & (z_true <= 60.0) & (grad > 40.0))
         if len(u) < 50:
             continue
-        inv = model.predict_inv_depth(frame.image, seq.camera.fx_px)
+        inv = model.predict_inv_depth(frame.image, camera=seq.camera)
         inv_at = sample_map(inv.inv_depth_per_m, np.stack([u, v], 1).astype(float),
                             (inv.image_width_px, inv.image_height_px))
         errs.append(float(np.median(np.log(inv_at * z_true[v, u]))))

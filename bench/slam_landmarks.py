@@ -24,7 +24,7 @@ class _ModelSource:
         self.model = model
 
     def inv_depth_map(self, image: np.ndarray, camera) -> np.ndarray:
-        return self.model.predict_inv_depth(image, fx_px=camera.fx_px).inv_depth_per_m
+        return self.model.predict_inv_depth(image, camera=camera).inv_depth_per_m
 
 
 def scale_landmark_depths(seq, model: DepthModel, preset: str) -> dict:

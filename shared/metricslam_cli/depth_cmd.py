@@ -1,7 +1,12 @@
-"""``metricslam depth IMAGE --fx FX --out OUT.npy [--png OUT.png] [--model PATH]``.
+"""``metricslam depth IMAGE (--fx FX [--fy FY --cx CX --cy CY] | --calib FILE) --out OUT.npy
+[--png OUT.png] [--model PATH]``.
 
 One image (gray or colour, any size) through the depth model in onnxruntime; writes depth in
-metres (float32, the network's L3 output resolution, covering the whole image).
+metres (float32, the network's L3 output resolution, covering the whole image; NaN where a
+canonical-camera model — contract version 2 — did not see the image). Intrinsics are pixels of
+IMAGE as given: ``--fx`` with optional ``--fy`` (default fx), ``--cx``/``--cy`` (default the
+image centre, (W−1)/2 and (H−1)/2), or a ``--calib`` file (rescaled to the image's size if it has
+the same aspect ratio; distortion is undone first). Version-1 models use only fx.
 """
 
 from __future__ import annotations
@@ -13,7 +18,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("depth", help="metric depth of one image with the shipped network",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("image", help="image file (PNG/JPEG, gray or colour, any size)")
-    p.add_argument("--fx", type=float, required=True, help="focal length of IMAGE in pixels (at its own width)")
+    p.add_argument("--fx", type=float, help="focal length of IMAGE in pixels (at its own width)")
+    p.add_argument("--fy", type=float, help="focal length y in pixels; default = fx")
+    p.add_argument("--cx", type=float, help="principal point x in pixels; default = image centre (W-1)/2")
+    p.add_argument("--cy", type=float, help="principal point y in pixels; default = image centre (H-1)/2")
+    p.add_argument("--calib", metavar="FILE.yaml",
+                   help="camera calibration instead of --fx/--fy/--cx/--cy (metricslam, OpenCV FileStorage "
+                        "or EuRoC sensor.yaml YAML; docs/calibration.md); distortion is undone first")
     p.add_argument("--out", required=True, help="output .npy: (h, w) float32 depth in metres")
     p.add_argument("--png", help="optional coloured visualization (inverse depth, near = bright)")
     p.add_argument("--model", help="ONNX model (default: the shipped int8 depth_l3_int8.onnx; its float32 "
@@ -21,6 +32,27 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads (default 1)")
     p.set_defaults(func=run)
     return p
+
+
+def image_camera(args: argparse.Namespace, width_px: int, height_px: int):
+    """``(PinholeCamera, undistortion maps or None)`` of IMAGE from ``--calib`` or ``--fx`` [...].
+
+    Raises:
+        ConfigError: neither or both given; CameraError / CalibrationError: bad values.
+    """
+    from metricslam.errors import ConfigError
+    from metricslam_cli.camera_cmd import intrinsics
+
+    if args.calib and args.fx is not None:
+        raise ConfigError("--calib and --fx both give intrinsics; pass one")
+    if args.calib:
+        from metricslam.calibration import camera_and_maps, load_calibration
+
+        return camera_and_maps(load_calibration(args.calib), width_px, height_px)
+    if args.fx is None:
+        raise ConfigError("no intrinsics: pass --fx FX (focal length in pixels at IMAGE's width; "
+                          "--fy/--cx/--cy optional) or --calib FILE.yaml")
+    return intrinsics(width_px, height_px, args.fx, args.fy, args.cx, args.cy), None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,14 +72,17 @@ def run(args: argparse.Namespace) -> int:
     if bgr.ndim == 3 and bgr.shape[2] == 4:
         bgr = bgr[:, :, :3]
     image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB) if bgr.ndim == 3 else bgr
+    camera, maps = image_camera(args, image.shape[1], image.shape[0])
+    if maps is not None:
+        image = cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR)
     model = DepthModel.load(args.model, threads=args.threads)
-    result = model.predict_inv_depth(image, args.fx)
+    result = model.predict_inv_depth(image, camera=camera)
     depth_m = result.depth_m()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out, depth_m)
     if args.png:
-        inv = result.inv_depth_per_m
+        inv = np.nan_to_num(result.inv_depth_per_m, nan=0.0)  # unseen cells: black
         scale = float(np.percentile(inv, 99)) or 1.0
         u8 = np.clip(inv / scale * 255.0, 0, 255).astype(np.uint8)
         h, w = image.shape[:2]

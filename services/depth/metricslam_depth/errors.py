@@ -109,6 +109,12 @@ def _validation_errors(exc: RequestValidationError) -> tuple[str, list[dict]]:
         if any("fx" in i["loc"] for i in items)
         else ""
     )
+    if any(i["loc"].rsplit(".", 1)[-1] in ("fy", "cx", "cy") for i in items):
+        hint += (
+            " fy (optional, default fx) has fx's range; cx and cy (optional, default the image "
+            "centre) are the principal point in pixels of the uploaded image: finite, "
+            "0 <= cx <= width, 0 <= cy <= height."
+        )
     return "; ".join(parts) + "." + hint, items
 
 

@@ -1,11 +1,12 @@
 """HTTP endpoints of the depth service (OpenAPI documents every status each one can answer).
 
 Order of checks on the inference endpoints, cheapest and most permanent first:
-fx (422) -> Content-Type (415) -> declared body size (413) -> readiness (503) -> upload memory
-budget (503) -> body streamed with a hard limit and deadline (413/408; a batch image part is
-judged as it arrives) -> image headers: pixels and decoded bytes (400/413) -> admission
-(429/503) -> decode (400) -> network. Everything before admission costs microseconds of the
-event loop per request and holds no inference slot. (In front of all of it:
+fx, fy, cx >= 0, cy >= 0 (422) -> Content-Type (415) -> declared body size (413) -> readiness
+(503) -> upload memory budget (503) -> body streamed with a hard limit and deadline (413/408; a
+batch image part is judged as it arrives) -> image headers: pixels and decoded bytes (400/413) ->
+admission (429/503) -> decode (400) -> principal point on the decoded, upright image (422) ->
+network. Everything before admission costs microseconds of the event loop per request and holds
+no inference slot. (In front of all of it:
 :class:`~metricslam_depth.admission.InflightLimit` and the connection guards.)
 """
 
@@ -23,6 +24,7 @@ from . import bodies
 from .disclosure import MODEL_LOAD_FAILED, public_contract
 from .errors import RequestProblem
 from .imaging import check_header, normalise_media_type
+from .intrinsics import CameraQuery
 from .multipart import BatchParser, boundary_of
 from .pipeline import DepthPipeline, Upload
 from .schemas import (
@@ -52,6 +54,39 @@ FxQuery = Annotated[
         examples=[718.856],
     ),
 ]
+FyQuery = Annotated[
+    float | None,
+    Query(
+        ge=FX_MIN_PX,
+        le=FX_MAX_PX,
+        allow_inf_nan=False,
+        description="focal length fy in pixels at the uploaded resolution; default fx. Same bounds "
+        "as fx. Used by canonical-camera (contract version 2) models; version-1 models ignore it",
+        examples=[718.856],
+    ),
+]
+CxQuery = Annotated[
+    float | None,
+    Query(
+        ge=0.0,
+        allow_inf_nan=False,
+        description="principal point column cx in pixels of the uploaded image (origin at the centre "
+        "of the top-left pixel); 0 <= cx <= image width, checked once the image is decoded; default "
+        "(width-1)/2. Used by contract version 2 models; version-1 models ignore it",
+        examples=[607.193],
+    ),
+]
+CyQuery = Annotated[
+    float | None,
+    Query(
+        ge=0.0,
+        allow_inf_nan=False,
+        description="principal point row cy in pixels of the uploaded image; 0 <= cy <= image height, "
+        "checked once the image is decoded; default (height-1)/2. Used by contract version 2 models; "
+        "version-1 models ignore it",
+        examples=[185.216],
+    ),
+]
 
 
 def _problem_doc(description: str, retry_after: bool = False) -> dict[str, Any]:
@@ -75,7 +110,8 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     413: _problem_doc("body, image part, decoded image (pixels or bytes) or batch larger than the "
                       "configured limits"),
     415: _problem_doc("Content-Type is not supported by this endpoint"),
-    422: _problem_doc("fx missing, not a number, non-finite or out of range"),
+    422: _problem_doc("fx missing, not a number, non-finite or out of range; fy, cx or cy not a "
+                      "number, non-finite or out of range (cx/cy: off the decoded image)"),
     429: _problem_doc("too many requests waiting; retry after Retry-After", retry_after=True),
     503: _problem_doc("model not loaded yet, too many requests or uploads in progress, or no inference "
                       "slot within the timeout", retry_after=True),
@@ -158,13 +194,14 @@ def _wants_npy(request: Request) -> bool:
     return NPY_MEDIA_TYPE in request.headers.get("accept", "").lower()
 
 
-async def _answer(request: Request, uploads: list[Upload], fx: float, route: str, batch: bool) -> Response:
+async def _answer(request: Request, uploads: list[Upload], query: CameraQuery, route: str,
+                  batch: bool) -> Response:
     pipeline = _pipeline(request)
     gate = request.app.state.depth.gate
     binary = _wants_npy(request)
 
     def work() -> tuple[bytes, dict[str, str]]:
-        prediction = pipeline.predict(uploads, fx, route)
+        prediction = pipeline.predict(uploads, query.fx_px, route, query.fy_px, query.cx_px, query.cy_px)
         if binary:
             return pipeline.render_npy(prediction, batch)
         return pipeline.render_json(prediction, batch), {}
@@ -183,14 +220,17 @@ async def _answer(request: Request, uploads: list[Upload], fx: float, route: str
     description=(
         "Body: the encoded PNG or JPEG file with its Content-Type. Answer: the network's coarse "
         "L3 disparity (`d_frac`, fraction of image width) and `inv_depth_per_m` for a camera with "
-        "focal length `fx` at the uploaded image's width. `Accept: application/x-npy` returns a "
-        ".npy float32 (2,h,w) stack [d_frac, inv_depth_per_m] with the metadata in X-* headers."
+        "focal length `fx` at the uploaded image's width (and `fy`, `cx`, `cy` for a canonical-camera "
+        "model, contract version 2: cells outside its field of view are null / NaN). `Accept: "
+        "application/x-npy` returns a .npy float32 (2,h,w) stack [d_frac, inv_depth_per_m] with the "
+        "metadata in X-* headers."
     ),
     responses={200: _ok_doc("JSON by default; .npy with Accept: application/x-npy"), **_ERRORS},
     openapi_extra=_image_body_doc(),
     tags=["inference"],
 )
-async def disparity(request: Request, fx: FxQuery) -> Response:
+async def disparity(request: Request, fx: FxQuery, fy: FyQuery = None, cx: CxQuery = None,
+                    cy: CyQuery = None) -> Response:
     route = "/v1/disparity"
     state = request.app.state.depth
     settings = state.settings
@@ -203,7 +243,8 @@ async def disparity(request: Request, fx: FxQuery) -> Response:
         try:
             await bodies.receive(request, limit, "image", settings.body_timeout_s, data.extend)
             check_header(data, media_type, settings.max_image_pixels, settings.max_decoded_bytes)
-            return await _answer(request, [Upload(data, media_type)], fx, route, batch=False)
+            query = CameraQuery(fx, fy, cx, cy)
+            return await _answer(request, [Upload(data, media_type)], query, route, batch=False)
         finally:
             _free(data)  # with the reservation: an error's traceback must not keep the body alive
 
@@ -214,14 +255,16 @@ async def disparity(request: Request, fx: FxQuery) -> Response:
     summary="Disparity and metric inverse depth for several images in one network run",
     description=(
         "Body: multipart/form-data, one part per image, every part named `images` with its own "
-        "Content-Type (image/png or image/jpeg). One `fx` applies to every image. Results keep "
+        "Content-Type (image/png or image/jpeg). One `fx` (and `fy`, `cx`, `cy`) applies to every "
+        "image; absent cx/cy default to each image's centre. Results keep "
         "the upload order. `Accept: application/x-npy` returns a .npy float32 (B,2,h,w) stack."
     ),
     responses={200: _ok_doc("JSON by default; .npy with Accept: application/x-npy"), **_ERRORS},
     openapi_extra=_batch_body_doc(),
     tags=["inference"],
 )
-async def disparity_batch(request: Request, fx: FxQuery) -> Response:
+async def disparity_batch(request: Request, fx: FxQuery, fy: FyQuery = None, cx: CxQuery = None,
+                          cy: CyQuery = None) -> Response:
     route = "/v1/disparity/batch"
     state = request.app.state.depth
     settings = state.settings
@@ -243,7 +286,7 @@ async def disparity_batch(request: Request, fx: FxQuery) -> Response:
         )
         try:
             await bodies.receive(request, limit, "batch body", settings.body_timeout_s, parser.write)
-            return await _answer(request, parser.finish(), fx, route, batch=True)
+            return await _answer(request, parser.finish(), CameraQuery(fx, fy, cx, cy), route, batch=True)
         finally:
             parser.discard()
 
@@ -253,7 +296,8 @@ async def disparity_batch(request: Request, fx: FxQuery) -> Response:
 @router.get(
     "/v1/model",
     response_model=ModelContract,
-    summary="The model's contract: input size, output meaning, baseline, params, training commit",
+    summary="The model's contract: version, input size, output meaning, baseline, canonical focal "
+    "lengths (version 2), params, training commit",
     responses={503: _ERRORS[503]},
     tags=["model"],
 )

@@ -7,6 +7,9 @@ Binary form (``Accept: application/x-npy``): the body is one NumPy ``.npy`` file
 float32 stack — ``(2, h, w)`` for one image, ``(B, 2, h, w)`` for a batch — with channel 0 =
 ``d_frac`` and channel 1 = ``inv_depth_per_m``; the scalar metadata travels in ``X-*`` headers
 (:data:`BINARY_HEADERS`).
+
+Cells outside a contract-version-2 model's field of view (the canonical camera, see
+``docs/depth_model.md``) are NaN in ``.npy`` and ``null`` in JSON; version-1 models fill every cell.
 """
 
 from __future__ import annotations
@@ -24,11 +27,16 @@ IMAGE_MEDIA_TYPES = ("image/png", "image/jpeg")
 # image, already a telescope; larger values (and NaN/inf) are a units or parsing bug upstream.
 FX_MIN_PX = 1e-3
 FX_MAX_PX = 1e5
+# The same bounds hold for fy. The principal point (cx, cy) must lie on the uploaded image,
+# 0 <= cx <= width, 0 <= cy <= height (checked after decoding, see metricslam_depth.intrinsics).
 
 #: header name -> meaning, for the binary (``application/x-npy``) form.
 BINARY_HEADERS: dict[str, str] = {
     "X-Model-Id": "model_id of the network that produced the arrays",
     "X-Fx-Px": "the fx the caller passed (pixels, at the uploaded image's resolution)",
+    "X-Fy-Px": "the fy used (the caller's, else fx)",
+    "X-Cx-Px": "the cx used for each image (the caller's, else (width-1)/2), comma-separated for a batch",
+    "X-Cy-Px": "the cy used for each image (the caller's, else (height-1)/2), comma-separated for a batch",
     "X-Baseline-M": "training baseline of the virtual stereo rig (metres)",
     "X-Image-Width-Px": "width of each uploaded image, comma-separated for a batch",
     "X-Image-Height-Px": "height of each uploaded image, comma-separated for a batch",
@@ -60,15 +68,19 @@ class DisparityResult(_Out):
 
     image_width_px: int = Field(description="width of the uploaded image (pixels)")
     image_height_px: int = Field(description="height of the uploaded image (pixels)")
+    cx_px: float = Field(description="principal point column used (the caller's cx, else (width-1)/2)")
+    cy_px: float = Field(description="principal point row used (the caller's cy, else (height-1)/2)")
     shape: list[int] = Field(
         min_length=2, max_length=2, description="[h, w] of both arrays (coarse L3 output)"
     )
-    d_frac: list[list[float]] = Field(
-        description="disparity as a fraction of image width, [row][col], shape (h, w)"
+    d_frac: list[list[float | None]] = Field(
+        description="disparity as a fraction of the uploaded image's width for fx_px and the "
+        "training baseline, [row][col], shape (h, w); null outside the field of view of a "
+        "canonical-camera (contract version 2) model"
     )
-    inv_depth_per_m: list[list[float]] = Field(
+    inv_depth_per_m: list[list[float | None]] = Field(
         description="metric inverse depth 1/m = d_frac*image_width_px/(fx_px*baseline_m); "
-        "0 where d_frac <= 0"
+        "0 where d_frac <= 0; null where d_frac is null"
     )
 
 
@@ -77,6 +89,7 @@ class DisparityResponse(DisparityResult):
 
     model_id: str = Field(description="identifier of the network (see GET /v1/model)")
     fx_px: float = Field(description="the fx the caller passed (pixels)")
+    fy_px: float = Field(description="the fy used (the caller's, else fx; pixels)")
     baseline_m: float = Field(description="training baseline of the virtual stereo rig (m)")
     inference_ms: float = Field(description="network time for this request (milliseconds)")
 
@@ -86,6 +99,7 @@ class BatchResponse(_Out):
 
     model_id: str
     fx_px: float
+    fy_px: float = Field(description="the fy used (the caller's, else fx; pixels)")
     baseline_m: float
     inference_ms: float = Field(description="network time for the whole batch (milliseconds)")
     results: list[DisparityResult]

@@ -14,6 +14,14 @@ Example::
     >>> inv = model.predict_inv_depth(image_u8, fx_px=718.9)
     >>> inv.inv_depth_per_m.shape                      # (32, 64) covering the whole image
     >>> fp32 = DepthModel.load(FLOAT32_MODEL_PATH)     # the float32 source, same model_id
+
+A contract-version-2 model (canonical camera, :mod:`metricslam.depth.canonical`) needs the
+whole camera, and its map is NaN outside the canonical field of view::
+
+    >>> v2 = DepthModel.load("canonical.onnx")
+    >>> inv = v2.predict_inv_depth(image_u8, camera=PinholeCamera(fx_px=718.9, fy_px=718.9,
+    ...                            cx_px=607.2, cy_px=185.2, width_px=1226, height_px=370))
+    >>> inv.valid.mean()                               # share of the grid the network saw
 """
 
 from __future__ import annotations
@@ -25,6 +33,16 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from metricslam.camera import PinholeCamera, check_intrinsics
+from metricslam.depth.canonical import (
+    CanonicalWarp,
+    canonical_warp,
+    cells_valid,
+    inv_depth_from_canonical,
+    to_caller_grid,
+    to_canonical,
+    valid_input_mask,
+)
 from metricslam.depth.contract import ModelContract
 from metricslam.disparity import inv_depth_from_width_fraction
 from metricslam.errors import DepthModelError, ImageError
@@ -43,19 +61,30 @@ class InvDepthMap:
     """The network's output for one image, on the L3 grid covering the whole image.
 
     Attributes:
-        d_frac: (h, w) float32 left disparity as a fraction of image width (training rig).
-        inv_depth_per_m: (h, w) float32 metric inverse depth for the caller's camera, 1/m.
+        d_frac: (h, w) float32 left disparity as a fraction of the image's width, for the
+            caller's ``fx_px`` and the training baseline — so ``inv_depth_per_m = d_frac ·
+            image_width_px / (fx_px · baseline_m)`` for either contract version. Version 1: the
+            network output itself; version 2: derived from ``inv_depth_per_m``.
+        inv_depth_per_m: (h, w) float32 metric inverse depth for the caller's camera, 1/m; NaN
+            where ``valid`` is False.
         image_width_px / image_height_px: size of the image the map covers (sample it with
             :func:`metricslam.depth.sample.sample_map` and ``image_size=(W, H)``).
+        valid: (h, w) bool, cells the network saw (version 2: inside the canonical field of
+            view); all True for version 1. ``None`` at construction means all True.
     """
 
     d_frac: np.ndarray
     inv_depth_per_m: np.ndarray
     image_width_px: int
     image_height_px: int
+    valid: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            object.__setattr__(self, "valid", np.ones(np.shape(self.inv_depth_per_m), dtype=bool))
 
     def depth_m(self) -> np.ndarray:
-        """(h, w) float32 depth in metres (``inf`` where the inverse depth is 0)."""
+        """(h, w) float32 depth in metres (``inf`` where the inverse depth is 0, NaN where invalid)."""
         with np.errstate(divide="ignore"):
             return (1.0 / self.inv_depth_per_m.astype(np.float64)).astype(np.float32)
 
@@ -112,34 +141,107 @@ class DepthModel:
             )
         return cls(session, contract)
 
-    def preprocess(self, images: Sequence[np.ndarray]) -> np.ndarray:
-        """uint8 images of any size -> (B, 1, H_in, W_in) float32 normalized network input."""
+    def warp_for(self, camera: PinholeCamera) -> CanonicalWarp:
+        """Version 2: the warp from ``camera``'s image to the network input."""
+        return canonical_warp(camera, self.contract.canonical_camera())
+
+    def _cameras(self, images: Sequence[np.ndarray], cameras: Sequence[PinholeCamera] | None
+                 ) -> list[PinholeCamera]:
+        if cameras is None or len(cameras) != len(images):
+            raise DepthModelError(
+                f"model {self.contract.model_id!r} (contract_version 2, canonical camera) needs one "
+                f"PinholeCamera per image (got {'none' if cameras is None else len(cameras)} for "
+                f"{len(images)} images): pass cameras=[...] / camera=... with fx, fy, cx, cy")
+        return list(cameras)
+
+    def preprocess(self, images: Sequence[np.ndarray],
+                   cameras: Sequence[PinholeCamera] | None = None) -> np.ndarray:
+        """uint8 images of any size -> (B, 1, H_in, W_in) float32 normalized network input.
+
+        Version 1: each whole image resized to the input (``cameras`` ignored). Version 2: each
+        image warped to the canonical camera with its ``cameras[i]`` (required; padding outside
+        the image, :func:`metricslam.depth.canonical.to_canonical`).
+        """
         c = self.contract
         norm = c.normalization
+        cams = self._cameras(images, cameras) if c.uses_canonical_camera else None
         batch = np.empty((len(images), 1, c.input_height, c.input_width), dtype=np.float32)
         for i, image in enumerate(images):
             gray = to_gray_u8(image)
-            resized = cv2.resize(gray, (c.input_width, c.input_height), interpolation=cv2.INTER_AREA)
+            if cams is None:
+                resized = cv2.resize(gray, (c.input_width, c.input_height), interpolation=cv2.INTER_AREA)
+            else:
+                resized, _ = to_canonical(gray, self.warp_for(cams[i]))
             batch[i, 0] = (resized.astype(np.float32) * norm.scale - norm.mean) / norm.std
         return batch
 
-    def predict_d_frac(self, images: Sequence[np.ndarray]) -> np.ndarray:
-        """(B, h, w) float32 left disparity / image width, for a list of uint8 images (gray or RGB)."""
-        if len(images) == 0:
-            raise ImageError("predict_d_frac needs at least one image")
-        x = self.preprocess(images)
-        (out,) = self._session.run([self.contract.output_name], {self.contract.input_name: x})
-        return np.asarray(out, dtype=np.float32).reshape(len(images), self.contract.output_height,
+    def run(self, batch: np.ndarray) -> np.ndarray:
+        """(B, 1, H_in, W_in) network input -> (B, h, w) float32 network output ``d_frac``."""
+        (out,) = self._session.run([self.contract.output_name], {self.contract.input_name: batch})
+        return np.asarray(out, dtype=np.float32).reshape(len(batch), self.contract.output_height,
                                                           self.contract.output_width)
 
-    def predict_inv_depth(self, image: np.ndarray, fx_px: float) -> InvDepthMap:
-        """Metric inverse depth (1/m) on the L3 grid for one image of a camera with focal ``fx_px``.
+    def predict_d_frac(self, images: Sequence[np.ndarray],
+                       cameras: Sequence[PinholeCamera] | None = None) -> np.ndarray:
+        """(B, h, w) float32 network output for a list of uint8 images (gray or RGB).
 
-        ``fx_px`` refers to the image as passed (its own width), not to the network input.
+        Version 1: disparity / image width on the grid covering each image. Version 2 (needs
+        ``cameras``): disparity / input width at the canonical focal, on the network's own
+        grid (convert with :meth:`inv_depth_map`).
+        """
+        if len(images) == 0:
+            raise ImageError("predict_d_frac needs at least one image")
+        return self.run(self.preprocess(images, cameras))
+
+    def inv_depth_map(self, d_frac: np.ndarray, size_px: tuple[int, int], fx_px: float | None = None,
+                      camera: PinholeCamera | None = None) -> InvDepthMap:
+        """One image's network output (h, w) -> :class:`InvDepthMap` on the grid spanning the image.
+
+        Args:
+            d_frac: (h, w) from :meth:`predict_d_frac` / :meth:`run`.
+            size_px: (W, H) of the image the grid spans (for version 2: ``camera``'s size).
+            fx_px: version 1: focal length at width W (default ``camera.fx_px``).
+            camera: version 2 (required): the image's camera, as given to :meth:`preprocess`.
+        """
+        c = self.contract
+        width_px, height_px = int(size_px[0]), int(size_px[1])
+        if not c.uses_canonical_camera:
+            fx = camera.fx_px if fx_px is None and camera is not None else fx_px
+            if fx is None:
+                raise DepthModelError("predict_inv_depth needs fx_px (or camera): the focal length in pixels")
+            inv = inv_depth_from_width_fraction(d_frac, float(fx), float(width_px), c.baseline_m)
+            return InvDepthMap(d_frac=d_frac, inv_depth_per_m=inv.astype(np.float32),
+                               image_width_px=width_px, image_height_px=height_px)
+        (cam,) = self._cameras([d_frac], None if camera is None else [camera])  # one image, one camera
+        if (cam.width_px, cam.height_px) != (width_px, height_px):
+            raise DepthModelError(f"camera is for {cam.width_px}x{cam.height_px} images, the map for "
+                                  f"{width_px}x{height_px}: pass the camera of this image")
+        warp = self.warp_for(cam)
+        valid_cells = cells_valid(valid_input_mask(warp), d_frac.shape, float(c.valid_min_fraction))
+        inv_in = inv_depth_from_canonical(d_frac, warp.canonical, c.baseline_m)
+        inv = to_caller_grid(inv_in, valid_cells, warp)
+        caller_d_frac = (inv.astype(np.float64) * (cam.fx_px * c.baseline_m / width_px)).astype(np.float32)
+        return InvDepthMap(d_frac=caller_d_frac, inv_depth_per_m=inv, image_width_px=width_px,
+                           image_height_px=height_px, valid=np.isfinite(inv))
+
+    def predict_inv_depth(self, image: np.ndarray, fx_px: float | None = None,
+                          camera: PinholeCamera | None = None, *, fy_px: float | None = None,
+                          cx_px: float | None = None, cy_px: float | None = None) -> InvDepthMap:
+        """Metric inverse depth (1/m) on the L3 grid covering one image.
+
+        Version 1 models need only the focal length: ``fx_px``, or ``camera.fx_px`` (the old
+        path, unchanged). Version 2 models need the whole camera: ``camera``, or all of
+        ``fx_px, fy_px, cx_px, cy_px``; the image is warped to the canonical camera, and cells
+        outside its field of view are NaN. Intrinsics refer to the image as passed (its own
+        size, pixel centres at integers), not to the network input.
         """
         gray = to_gray_u8(image)
-        d_frac = self.predict_d_frac([gray])[0]
         height_px, width_px = gray.shape
-        inv = inv_depth_from_width_fraction(d_frac, float(fx_px), float(width_px), self.contract.baseline_m)
-        return InvDepthMap(d_frac=d_frac, inv_depth_per_m=inv.astype(np.float32),
-                           image_width_px=int(width_px), image_height_px=int(height_px))
+        if camera is None and None not in (fx_px, fy_px, cx_px, cy_px):
+            values = {"fx_px": float(fx_px), "fy_px": float(fy_px), "cx_px": float(cx_px),
+                      "cy_px": float(cy_px), "width_px": int(width_px), "height_px": int(height_px)}
+            check_intrinsics(**values)  # CameraError naming the implausible value
+            camera = PinholeCamera(**values)
+        cams = [camera] if camera is not None else None
+        d_frac = self.predict_d_frac([gray], cams if self.contract.uses_canonical_camera else None)[0]
+        return self.inv_depth_map(d_frac, (width_px, height_px), fx_px=fx_px, camera=camera)

@@ -28,7 +28,11 @@ class DepthSource(Protocol):
 
         Args:
             image: (H, W) uint8 gray or (H, W, 3) uint8 RGB.
-            camera: intrinsics of ``image`` (``fx_px`` converts disparity to inverse depth).
+            camera: intrinsics of ``image`` (``fx_px`` converts disparity to inverse depth; a
+                canonical-camera model warps the image with all of them).
+
+        Returns NaN in cells the network did not see (outside a canonical-camera model's field
+        of view); consumers drop non-finite samples.
 
         Raises:
             DepthSourceError: the source could not answer (the caller skips this keyframe).
@@ -64,7 +68,7 @@ class OnnxDepthSource:
         with self._lock:
             try:
                 model = self._load()
-                out = model.predict_inv_depth(image, fx_px=camera.fx_px)
+                out = model.predict_inv_depth(image, camera=camera)  # v1 uses fx only, v2 all of it
             except DepthSourceError:
                 raise
             except MetricSlamError as exc:

@@ -1,8 +1,9 @@
 """``HttpDepthSource``: the depth service over HTTP, as a :class:`metricslam.slam.depth_source.DepthSource`.
 
 ``inv_depth_map(image, camera)`` PNG-encodes the keyframe image, ``POST``s it to
-``{url}/v1/disparity?fx=<fx_px>`` (``Accept: application/x-npy``) and returns the service's metric inverse depth (h, w) float32
-(1/m) for that camera, covering the whole image. Connection failures, timeouts and 5xx/429 are
+``{url}/v1/disparity?fx=<fx_px>&fy=<fy_px>&cx=<cx_px>&cy=<cy_px>`` (``Accept: application/x-npy``)
+and returns the service's metric inverse depth (h, w) float32 (1/m) for that camera, covering the
+whole image; NaN in cells outside a canonical-camera (contract version 2) model's field of view. Connection failures, timeouts and 5xx/429 are
 retried a bounded number of times with a short backoff, then :class:`DepthSourceError` is raised —
 the global back end treats that as "no scale factor for this keyframe" and tracking goes on.
 ``reachable`` (None until first use), ``last_error`` and ``outages`` (times it went from not
@@ -95,7 +96,8 @@ class HttpDepthSource:
             DepthSourceError: the service could not be reached or answered garbage after retries.
         """
         body = _encode_png(image)
-        params = {"fx": f"{camera.fx_px:.6f}"}
+        params = {"fx": f"{camera.fx_px:.6f}", "fy": f"{camera.fy_px:.6f}",
+                  "cx": f"{camera.cx_px:.6f}", "cy": f"{camera.cy_px:.6f}"}
         headers = {"Content-Type": "image/png", "Accept": "application/x-npy"}
         error = "no attempt"
         for attempt in range(self.retries + 1):
@@ -141,7 +143,10 @@ def _encode_png(image: np.ndarray) -> bytes:
 
 
 def _parse(response: httpx.Response) -> np.ndarray:
-    """``.npy`` (2, h, w) [d_frac, inv_depth_per_m] or JSON ``{"inv_depth_per_m": ...}`` -> (h, w)."""
+    """``.npy`` (2, h, w) [d_frac, inv_depth_per_m] or JSON ``{"inv_depth_per_m": ...}`` -> (h, w).
+
+    NaN (JSON ``null``) marks cells outside the network's field of view and is kept (samples
+    there are dropped downstream); infinities, or a map with no finite cell, are refused."""
     try:
         if response.content[:6] == b"\x93NUMPY":
             array = np.load(io.BytesIO(response.content), allow_pickle=False)
@@ -149,9 +154,11 @@ def _parse(response: httpx.Response) -> np.ndarray:
                 raise ValueError(f"expected a (2, h, w) stack, got {array.shape}")
             array = array[1]
         else:
-            array = np.asarray(response.json()["inv_depth_per_m"], dtype=np.float32)
+            rows = response.json()["inv_depth_per_m"]
+            array = np.asarray([[np.nan if v is None else v for v in row] for row in rows], dtype=np.float32)
     except (ValueError, KeyError, TypeError) as exc:
         raise DepthSourceError(f"depth service answered an unreadable body: {exc}") from None
-    if array.ndim != 2 or array.size == 0 or not np.all(np.isfinite(array)):
-        raise DepthSourceError(f"depth service answered a bad inverse-depth map, shape {array.shape}")
+    if array.ndim != 2 or array.size == 0 or np.isinf(array).any() or not np.isfinite(array).any():
+        raise DepthSourceError(f"depth service answered a bad inverse-depth map, shape {array.shape} "
+                               "(infinite values, or no cell in the network's field of view)")
     return array.astype(np.float32, copy=False)
