@@ -13,7 +13,9 @@ Sources (all under ``bench/results/``):
 * ``depth_speed_int8.json`` — the int8 network's latency (``bench/depth_speed.py``);
 * ``speed.json`` — frames/s of ``metricslam run`` (``bench/speed.py``);
 * ``depth_v3_selection.json`` — how the shipped model was chosen (``bench/select_depth.py``);
-* ``scale_measurements.json`` — what the scale factors consume (``bench/scale_measurements.py``).
+* ``scale_measurements.json`` — what the scale factors consume (``bench/scale_measurements.py``);
+* ``own_rig.json``, ``own_rig_turns.json`` — one non-KITTI rig before and after fine-tuning
+  (``bench/own_rig.py``), spliced into ``docs/own_camera.md``.
 """
 
 from __future__ import annotations
@@ -157,6 +159,47 @@ def consumed_table(data: dict, ref: str = "stereo") -> str:
     return "\n".join(lines)
 
 
+def own_rig_table(data: dict) -> str:
+    """One row per model of a ``bench/own_rig.py`` result: the SLAM's scale and trajectory errors."""
+    lines = ["| drive | model | weights | scale error | ATE SE(3) | ATE % of path | ATE Sim(3) | t_rel | loops "
+             "accepted / rejected |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    drive = Path(data["seq"]).name
+    for r in data["models"]:
+        e = r.get("eval")
+        if not e:
+            lines.append(f"| {drive} | {r['name']} | {r.get('weights_precision', '?')} | failed | | | | | |")
+            continue
+        lines.append(f"| {drive} | {r['name']} (`{Path(r['model']).name}`) | {r['weights_precision']} | "
+                     f"**{e['scale_error_pct']:.1f} %** | {e['ate_rmse_m']:.2f} m | {e['ate_pct_of_path']:.2f} % | "
+                     f"{e['ate_rmse_sim3_m']:.2f} m | {e['t_rel_pct']:.1f} % | {r['run'].get('loops_accepted', '?')} / "
+                     f"{r['run'].get('loops_rejected', '?')} |")
+    return "\n".join(lines)
+
+
+def own_rig_corners(data: dict) -> str:
+    """Median z_net / z_tri per range bin per model of a ``bench/own_rig.py`` result."""
+    bins = ("2-5", *BINS)
+    lines = ["| drive: model | " + " | ".join(f"{b} m" for b in bins) + " | all |",
+             "| --- |" + " --- |" * (len(bins) + 1)]
+    for r in data["models"]:
+        net = r["corners"]["network"]
+        lines.append(f"| {Path(data['seq']).name}: {r['name']} | "
+                     + " | ".join(f"×{net[b]['median']:.2f}" if net[b]["n"] else "–" for b in (*bins, "all")) + " |")
+    return "\n".join(lines)
+
+
+def own_rig_block() -> str:
+    """The generated block of docs/own_camera.md (empty without the result files)."""
+    parts = []
+    for name in ("own_rig.json", "own_rig_turns.json"):
+        data = _load(name)
+        if data:
+            parts += [own_rig_table(data), "", "Depth network at ground-truth-triangulated corners of the "
+                      "same drive (median z_net / z_tri per range bin, 1 = right):", "", own_rig_corners(data), "",
+                      _src(name, data) + f"; machine: {data.get('machine', '?')}", ""]
+    return "\n".join(parts).rstrip() + "\n" if parts else ""
+
+
 def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
@@ -209,9 +252,9 @@ def build() -> tuple[str, str]:
     return block, "\n".join(page).rstrip() + "\n"
 
 
-def splice(readme: str, block: str) -> str:
+def splice(readme: str, block: str, name: str = "README.md") -> str:
     if BEGIN not in readme or END not in readme:
-        raise SystemExit(f"README.md lacks the markers {BEGIN!r} … {END!r}")
+        raise SystemExit(f"{name} lacks the markers {BEGIN!r} … {END!r}")
     head, rest = readme.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
     return f"{head}{BEGIN}\n{block}{END}{tail}"
@@ -219,21 +262,24 @@ def splice(readme: str, block: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--check", action="store_true", help="fail if README.md or docs/results.md are stale")
+    p.add_argument("--check", action="store_true",
+                   help="fail if README.md, docs/results.md or docs/own_camera.md are stale")
     args = p.parse_args(argv)
     block, page = build()
     readme_path, page_path = ROOT / "README.md", ROOT / "docs" / "results.md"
-    new_readme = splice(readme_path.read_text(), block)
+    own_path = ROOT / "docs" / "own_camera.md"
+    outputs = [(readme_path, splice(readme_path.read_text(), block)), (page_path, page)]
+    if own_path.is_file():
+        outputs.append((own_path, splice(own_path.read_text(), own_rig_block(), "docs/own_camera.md")))
     if args.check:
-        stale = [str(p.relative_to(ROOT)) for p, new in ((readme_path, new_readme), (page_path, page))
-                 if not p.is_file() or p.read_text() != new]
+        stale = [str(p.relative_to(ROOT)) for p, new in outputs if not p.is_file() or p.read_text() != new]
         if stale:
             print(f"stale generated results: {', '.join(stale)}; run `make results` and commit", file=sys.stderr)
             return 1
         return 0
-    readme_path.write_text(new_readme)
-    page_path.write_text(page)
-    print(f"wrote {readme_path.name} (results block) and docs/results.md")
+    for path, text in outputs:
+        path.write_text(text)
+    print(f"wrote {', '.join(str(p.relative_to(ROOT)) for p, _ in outputs)}")
     return 0
 
 

@@ -27,12 +27,20 @@ _KITTI_FX_PX, _KITTI_CX_PX, _KITTI_CY_PX = 718.856, 607.1928, 185.2157
 _KITTI_SIZE = (1241, 376)
 
 
-def kitti_like_camera(width_px: int = 1241, height_px: int = 376) -> PinholeCamera:
-    """KITTI 00 intrinsics scaled to ``width × height`` (square pixels, focal scales with width)."""
+def kitti_like_camera(width_px: int = 1241, height_px: int = 376,
+                      fx_px: float | None = None) -> PinholeCamera:
+    """KITTI 00 intrinsics scaled to ``width × height`` (square pixels, focal scales with width).
+
+    ``fx_px`` (px at ``width_px``, ``fy = fx``) replaces the scaled KITTI focal length (718.856 px
+    at 1241 wide) for another rig's field of view; the principal point stays KITTI's, scaled.
+    """
     if width_px < 16 or height_px < 16:
         raise SynthError(f"image size {width_px}x{height_px} is too small; use at least 16x16")
+    if fx_px is not None and not fx_px > 0:
+        raise SynthError(f"focal length must be > 0 px, got {fx_px} (--fx)")
     s = width_px / _KITTI_SIZE[0]
-    return PinholeCamera(fx_px=_KITTI_FX_PX * s, fy_px=_KITTI_FX_PX * s,
+    f = _KITTI_FX_PX * s if fx_px is None else float(fx_px)
+    return PinholeCamera(fx_px=f, fy_px=f,
                          cx_px=(_KITTI_CX_PX + 0.5) * s - 0.5,
                          cy_px=(_KITTI_CY_PX + 0.5) * height_px / _KITTI_SIZE[1] - 0.5,
                          width_px=width_px, height_px=height_px)
@@ -45,6 +53,9 @@ class SynthConfig(BaseModel):
 
     width_px: int = Field(1241, ge=16)
     height_px: int = Field(376, ge=16)
+    #: focal length (px at ``width_px``, fx = fy); None: KITTI 00's scaled to the width
+    fx_px: float | None = Field(None, gt=0)
+    #: stereo baseline (m): the right camera sits at +x by this much
     baseline_m: float = Field(0.54, gt=0)
     frame_rate_hz: float = Field(trj.FRAME_RATE_HZ, gt=0)
     far_m: float = Field(250.0, gt=1, le=255.0)
@@ -69,7 +80,9 @@ class StereoFrame:
 
 
 class SynthScene:
-    """A seeded street world along ``T_world_cam`` (N, 4, 4) with a KITTI-like stereo rig."""
+    """A seeded street world along ``T_world_cam`` (N, 4, 4) with a stereo rig: KITTI-like by
+    default; ``config.fx_px``, ``config.baseline_m`` and ``config.world.camera_height_m`` change
+    its focal length, baseline and mounting height."""
 
     def __init__(self, T_world_cam: np.ndarray, seed: int, config: SynthConfig | None = None) -> None:
         self.config = config or SynthConfig()
@@ -78,7 +91,7 @@ class SynthScene:
         if self.T_world_cam.ndim != 3 or self.T_world_cam.shape[1:] != (4, 4):
             raise SynthError(f"expected poses of shape (N, 4, 4), got {self.T_world_cam.shape}")
         cfg = self.config
-        self.camera = kitti_like_camera(cfg.width_px, cfg.height_px)
+        self.camera = kitti_like_camera(cfg.width_px, cfg.height_px, cfg.fx_px)
         self.world = build_world(self.T_world_cam, self.seed, cfg.world)
         self.renderer = Renderer(self.world, self.camera, build_atlas(self.seed), far_m=cfg.far_m)
         self.gains = exposure_gains(len(self.T_world_cam), self.seed, cfg.photometric)
