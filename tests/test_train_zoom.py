@@ -67,3 +67,58 @@ def test_zoom_keeps_the_centre_row_and_invalid_labels():
     # only zeros and scaled valid values, nothing in between (nearest sampling of a sparse map)
     values = set(np.unique(np.round(zbl.numpy() * W, 4)))
     assert values <= {0.0, 3.0}
+
+
+def test_pad_window_pads_outside_a_centred_window_only():
+    from metricslam.depth.canonical import PAD_VALUE_U8
+    from metricslam_train.data import pad_window
+
+    left, right, bl, br = _pair(3.0)
+    gen = torch.Generator().manual_seed(3)
+    pl, pr, pbl, pbr = pad_window(left, right, bl, br, gen, p_pad=1.0, width_range=(0.5, 0.5),
+                                  height_range=(0.5, 0.5))
+    pad = PAD_VALUE_U8 / 255.0
+    padded = (pl[0, 0] == pad) & (pr[0, 0] == pad)
+    # the kept window is about half the width and height (centre jitter <= 2 %), around the centre
+    assert padded[H // 2, W // 2].item() is False
+    assert padded[0, 0].item() and padded[-1, -1].item()
+    kept = (~padded).float()
+    assert float(kept.mean()) == pytest.approx(0.25, abs=0.05)
+    # labels: none where padded, untouched inside
+    assert torch.all(pbl[0, 0][padded] == 0) and torch.all(pbr[0, 0][padded] == 0)
+    inside = ~padded & (bl[0, 0] > 0)
+    assert torch.equal(pbl[0, 0][inside], bl[0, 0][inside])
+    assert torch.equal(pl[0, 0][~padded], left[0, 0][~padded])
+    off = pad_window(left, right, bl, br, gen, p_pad=0.0)
+    assert off[0] is left
+
+
+def test_canonical_training_asks_for_k_times_the_disparity(tmp_path):
+    """Contract v2: the cache's ratio is divided by k = fx_c / fx_input, the labels stay the pair's."""
+    from metricslam_train.data import StereoPairs
+
+    n, h, w = 2, 8, 16
+    path = tmp_path / "c.npz"
+    bm = np.full((n, h, w), 0.02, np.float16)
+    np.savez(path, left=np.zeros((n, h, w), np.uint8), right=np.zeros((n, h, w), np.uint8), bm_left=bm,
+             bm_right=bm, baseline_ratio=np.float32(0.5), name="x", fx_px=np.float32(700.0))
+    plain = StereoPairs([path])
+    scaled = StereoPairs([path], [1.25])
+    assert np.array_equal(plain.bm_left, scaled.bm_left)
+    assert scaled.ratio[0] == pytest.approx(0.5 / 1.25)
+    # what the loss wants from the network: output * ratio == label
+    assert float(bm[0, 0, 0]) / scaled.ratio[0] == pytest.approx(1.25 * float(bm[0, 0, 0]) / plain.ratio[0])
+
+
+def test_export_writes_a_v2_contract_for_a_canonical_run():
+    from metricslam_train.export import contract_for
+    from metricslam_train.network import PyramidDepthNet
+
+    meta = {"model_id": "t", "input_height": 256, "input_width": 512,
+            "normalization": {"scale": 1 / 255, "mean": 0.45, "std": 0.25}, "baseline_m": 0.537,
+            "training_data": "x", "training_commit": "y"}
+    net = PyramidDepthNet()
+    assert contract_for(net, meta).contract_version == "1"
+    v2 = contract_for(net, {**meta, "canonical_fx_px": 296.6, "canonical_fy_px": 489.5, "valid_min_fraction": 0.75})
+    assert v2.contract_version == "2" and v2.uses_canonical_camera
+    assert v2.canonical_camera().fx_px == pytest.approx(296.6)

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from metricslam.errors import TrainingError
 
@@ -21,6 +21,12 @@ class AugmentConfig(BaseModel):
     #: log-uniform); labels scale with the magnification. Off by default.
     p_zoom: float = Field(0.0, ge=0, le=1)
     zoom_range: tuple[float, float] = (1.0, 1.0)
+    #: field-of-view augmentation for the canonical camera (data.pad_window, contract v2): with
+    #: probability ``p_pad`` only a centred window (width/height fractions drawn from the ranges) of
+    #: the input keeps its pixels, the rest is padded as inference pads a narrower camera. Off by default.
+    p_pad: float = Field(0.0, ge=0, le=1)
+    pad_width_range: tuple[float, float] = (0.35, 1.0)
+    pad_height_range: tuple[float, float] = (0.5, 1.0)
 
 
 class LossConfig(BaseModel):
@@ -106,6 +112,13 @@ class TrainConfig(BaseModel):
     #: ONNX model written by `metricslam export` (e.g. the shipped depth_l3.onnx: fine-tune it);
     #: the optimizer and step count start fresh, and its training data is recorded with this run's.
     init_from: str | None = None
+    #: canonical camera (depth contract v2, ``metricslam.depth.canonical``): the network input's focal
+    #: lengths, px at ``input_width x input_height``; both or neither. None: contract v1 (the whole
+    #: image resized). With them, each cache's labels are rescaled to the canonical focal length.
+    canonical_fx_px: float | None = Field(None, gt=0)
+    canonical_fy_px: float | None = Field(None, gt=0)
+    #: contract v2's ``valid_min_fraction``: output cells with less real (unpadded) input are invalid
+    valid_min_fraction: float = Field(0.75, gt=0, le=1)
     checkpoint_every: int = Field(250, ge=1)
     #: exponential moving average of the weights (Polyak averaging), updated every step with
     #: decay ``min(ema_decay, (1 + step) / (10 + step))``; checkpoints carry it as ``ema`` and
@@ -115,6 +128,12 @@ class TrainConfig(BaseModel):
     seed: int = 0
     threads: int = Field(1, ge=1)
     device: str = "auto"
+
+    @model_validator(mode="after")
+    def _canonical_both_or_neither(self) -> "TrainConfig":
+        if (self.canonical_fx_px is None) != (self.canonical_fy_px is None):
+            raise ValueError("canonical_fx_px and canonical_fy_px go together: give both (contract v2) or neither (v1)")
+        return self
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "TrainConfig":

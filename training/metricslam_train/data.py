@@ -16,7 +16,8 @@ output of ``metricslam synth`` share it.
 
 :class:`StereoPairs` serves (left, right, bm_left, bm_right, ratio) tensors and
 :func:`augment` applies flip-with-swap, gamma and brightness on a batch; :func:`zoom` magnifies a
-batch about its centre row with the labels scaled to match (scale augmentation).
+batch about its centre row with the labels scaled to match (scale augmentation); :func:`pad_window`
+pads all but a centred window, as contract v2 pads a narrower camera (field-of-view augmentation).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from metricslam.depth.canonical import PAD_VALUE_U8
 from metricslam.errors import TrainingError
 from metricslam.stereo import block_matching_pair
 
@@ -237,7 +239,12 @@ class StereoPairs(torch.utils.data.Dataset):
     ``stereo`` is 1.0 for a stereo pair and 0.0 for a supervision-only image (:func:`build_depth_cache`).
     """
 
-    def __init__(self, cache_paths: list[str | Path]) -> None:
+    def __init__(self, cache_paths: list[str | Path], label_scales: list[float] | None = None) -> None:
+        """``label_scales`` (one per cache, default 1): the pair's ``ratio`` is divided by it. The
+        labels are this pair's own disparities and the loss compares them with ``output · ratio``
+        (the warp uses the same product), so dividing ``ratio`` by ``k`` asks the network for ``k``
+        times the training-baseline d_frac — contract v2's disparity at the canonical focal length,
+        ``k = fx_canonical / fx_input`` — while the pair is still warped by its true disparity."""
         if not cache_paths:
             raise TrainingError("no training caches given: list at least one sequence in the config")
         parts = []
@@ -249,7 +256,9 @@ class StereoPairs(torch.utils.data.Dataset):
                 part = {k: z[k] for k in ("left", "bm_left", "bm_right", "baseline_ratio")}
                 part["right"] = z["right"] if "right" in z.files else part["left"]  # depth frames: none
                 part["stereo"] = bool(z["stereo"]) if "stereo" in z.files else True
-                parts.append(part)
+            k = 1.0 if label_scales is None else float(label_scales[len(parts)])
+            part["baseline_ratio"] = np.float32(part["baseline_ratio"] / k)
+            parts.append(part)
         self.left = np.concatenate([p["left"] for p in parts])
         self.right = np.concatenate([p["right"] for p in parts])
         self.bm_left = np.concatenate([p["bm_left"] for p in parts])
@@ -324,3 +333,35 @@ def zoom(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_righ
     scale = s.view(b, 1, 1, 1).to(left.dtype)
     return (warp(left, "bilinear"), warp(right, "bilinear"),
             warp(bm_left, "nearest") * scale, warp(bm_right, "nearest") * scale)
+
+
+def pad_window(left: torch.Tensor, right: torch.Tensor, bm_left: torch.Tensor, bm_right: torch.Tensor,
+               generator: torch.Generator | None = None, p_pad: float = 0.0,
+               width_range: tuple[float, float] = (0.35, 1.0), height_range: tuple[float, float] = (0.5, 1.0),
+               pad_value: float = PAD_VALUE_U8 / 255.0):
+    """Field-of-view augmentation (B,1,H,W) for the canonical camera (contract v2).
+
+    With probability ``p_pad`` per pair, only a centred window (width and height fractions drawn
+    uniformly from the ranges; the centre jittered by up to 2 % of the size, as principal points
+    are) keeps its pixels: outside it both images take ``pad_value`` (what
+    :func:`metricslam.depth.canonical.to_canonical` pads with, in [0, 1]) and the labels 0
+    (no supervision). That is exactly what inference feeds the network for a camera with a
+    narrower field of view at the canonical focal length; the disparities inside are unchanged.
+    """
+    b, _, h, w = left.shape
+    if p_pad <= 0:
+        return left, right, bm_left, bm_right
+    rand = lambda: torch.rand(b, generator=generator)  # noqa: E731
+    apply = rand() < p_pad
+    fw = width_range[0] + (width_range[1] - width_range[0]) * rand()
+    fh = height_range[0] + (height_range[1] - height_range[0]) * rand()
+    cx = w / 2 + (rand() * 2 - 1) * 0.02 * w
+    cy = h / 2 + (rand() * 2 - 1) * 0.02 * h
+    u = torch.arange(w, dtype=left.dtype).view(1, 1, 1, w) + 0.5
+    v = torch.arange(h, dtype=left.dtype).view(1, 1, h, 1) + 0.5
+    inside = ((u - cx.view(b, 1, 1, 1)).abs() <= (fw * w / 2).view(b, 1, 1, 1)) & \
+        ((v - cy.view(b, 1, 1, 1)).abs() <= (fh * h / 2).view(b, 1, 1, 1))
+    keep = inside | ~apply.view(b, 1, 1, 1)
+    pad = torch.full_like(left, pad_value)
+    return (torch.where(keep, left, pad), torch.where(keep, right, pad),
+            torch.where(keep, bm_left, torch.zeros_like(bm_left)), torch.where(keep, bm_right, torch.zeros_like(bm_right)))

@@ -17,7 +17,7 @@ from pathlib import Path
 import onnx
 import torch
 
-from metricslam.depth.contract import ModelContract, Normalization
+from metricslam.depth.contract import CANONICAL_CONTRACT_VERSION, ModelContract, Normalization
 from metricslam.errors import TrainingError
 from metricslam_train.network import ExportWrapper, PyramidDepthNet, count_parameters
 
@@ -102,6 +102,9 @@ def contract_for(net: PyramidDepthNet, meta: dict, model_id: str | None = None) 
         training_data=str(meta["training_data"]),
         training_commit=str(meta.get("training_commit", "unknown")),
         created=_dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
+        **({"contract_version": CANONICAL_CONTRACT_VERSION, "canonical_fx_px": float(meta["canonical_fx_px"]),
+            "canonical_fy_px": float(meta["canonical_fy_px"]), "valid_min_fraction": float(meta["valid_min_fraction"])}
+           if meta.get("canonical_fx_px") is not None else {}),
     )
 
 

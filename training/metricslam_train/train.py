@@ -14,13 +14,14 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import yaml
 
 from metricslam.errors import TrainingError
 from metricslam_train.config import TrainConfig
-from metricslam_train.data import StereoPairs, augment, build_cache, build_depth_cache, read_stereo_sequence, zoom
+from metricslam_train.data import StereoPairs, augment, build_cache, build_depth_cache, pad_window, read_stereo_sequence, zoom
 from metricslam_train.export import git_commit
 from metricslam_train.losses import LossWeights, total_loss
 from metricslam_train.network import PyramidDepthNet, count_parameters
@@ -115,7 +116,46 @@ def checkpoint_meta(cfg: TrainConfig, training_data: str) -> dict:
         "baseline_m": cfg.train_baseline_m,
         "training_data": training_data,
         "training_commit": git_commit(),
+        **({"canonical_fx_px": cfg.canonical_fx_px, "canonical_fy_px": cfg.canonical_fy_px,
+            "valid_min_fraction": cfg.valid_min_fraction} if cfg.canonical_fx_px is not None else {}),
     }
+
+
+def canonical_label_scales(cfg: TrainConfig, cache_paths: list[Path]) -> list[float] | None:
+    """Per cache ``k = canonical_fx / fx_input`` (contract v2), ``fx_input`` = the drive's focal length
+    at the cached input width; None for contract v1. Each cache records ``fx_px`` (full resolution)
+    and, through its source images, the full width: the cached d_frac is a fraction of that width."""
+    if cfg.canonical_fx_px is None:
+        return None
+    widths = source_widths(cfg)
+    if len(widths) != len(cache_paths):
+        raise TrainingError(f"{len(cache_paths)} caches but {len(widths)} source folders: rebuild the caches")
+    scales = []
+    for path, width_full in zip(cache_paths, widths, strict=True):
+        with np.load(path) as z:
+            fx_full = float(z["fx_px"])
+        scales.append(cfg.canonical_fx_px / (fx_full * cfg.input_width / width_full))
+    return scales
+
+
+def source_widths(cfg: TrainConfig) -> list[float]:
+    """Full-resolution image width (px) behind each cache, in :func:`prepare_caches`' order."""
+    widths = []
+    for entry in cfg.sequences:
+        for folder in expand_sequences(entry):
+            seq = read_stereo_sequence(folder, cfg.frame_step)
+            widths.append(_image_width(seq.left_paths[0]))
+    for frames in cfg.depth_frames:
+        first = sorted((Path(frames.folder) / "image_02").glob("*.png"))[0]
+        widths.extend([_image_width(first)] * frames.repeat)
+    return widths
+
+
+def _image_width(path: str | Path) -> float:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise TrainingError(f"cannot read {path}")
+    return float(image.shape[1])
 
 
 def _lr_at(cfg: TrainConfig, step: int) -> float:
@@ -155,7 +195,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
     cache_paths, training_data = prepare_caches(cfg)
-    data = StereoPairs(cache_paths)
+    data = StereoPairs(cache_paths, canonical_label_scales(cfg, cache_paths))
     if len(data) < 1:
         raise TrainingError("the training caches hold no pairs")
 
@@ -221,6 +261,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
             left, right, bm_l, bm_r = augment(left, right, bm_l, bm_r, gen, a.p_flip, a.gamma_range,
                                               a.brightness_range)
             left, right, bm_l, bm_r = zoom(left, right, bm_l, bm_r, gen, a.p_zoom, a.zoom_range)
+            left, right, bm_l, bm_r = pad_window(left, right, bm_l, bm_r, gen, a.p_pad, a.pad_width_range,
+                                                 a.pad_height_range)
             left, right, bm_l, bm_r, ratio, stereo = (t.to(device) for t in (left, right, bm_l, bm_r, ratio, stereo))
             t0 = time.perf_counter()
             outputs = net((left - cfg.norm_mean) / cfg.norm_std)
