@@ -187,3 +187,25 @@ def test_cli_quantize_refuses_a_folder_without_images(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(empty) in err and "holds no image" in err and "KITTI sequence folder" in err
     assert not out.exists()
+
+
+def test_a_canonical_camera_model_quantizes_and_keeps_its_contract(calib_dir, held_out_image, tmp_path):
+    """Contract v2: calibration images carry no intrinsics; each is fed as the camera that spans the
+    whole input, and the int8 copy keeps the v2 keys and agrees with its float32 source."""
+    model = onnx.load(str(FLOAT32_MODEL_PATH))
+    meta = _metadata(FLOAT32_MODEL_PATH)
+    v1 = ModelContract.from_metadata(meta)
+    v2 = v1.model_copy(update={"contract_version": "2", "canonical_fx_px": 296.58, "canonical_fy_px": 489.43,
+                               "valid_min_fraction": 0.75})
+    del model.metadata_props[:]
+    for key, value in v2.to_metadata().items():
+        model.metadata_props.add(key=key, value=value)
+    src = tmp_path / "v2.onnx"
+    onnx.save(model, str(src))
+    arrays = [load_image(p, color=False) for p in find_images([calib_dir])[:4]]
+    out = tmp_path / "v2_int8.onnx"
+    quantize_model(src, out, arrays)
+    q = DepthModel.load(out)
+    assert q.contract.contract_version == "2" and q.contract.canonical_fx_px == pytest.approx(296.58)
+    agreement = compare_models(DepthModel.load(src), q, [held_out_image])
+    assert agreement.median < MEDIAN_ABS_LOG_RATIO_TOL

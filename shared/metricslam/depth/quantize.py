@@ -42,6 +42,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from metricslam.camera import PinholeCamera
 from metricslam.datasets import load_image
 from metricslam.depth.contract import FLOAT32, INT8_STATIC, ModelContract
 from metricslam.depth.model import DepthModel
@@ -177,8 +178,8 @@ def compare_models(reference: DepthModel, candidate: DepthModel, images: Iterabl
     ratios: list[np.ndarray] = []
     for image in images:
         pixels = _pixels(image)
-        ref = reference.predict_d_frac([pixels])[0].astype(np.float64)
-        cand = candidate.predict_d_frac([pixels])[0].astype(np.float64)
+        ref = reference.predict_d_frac([pixels], _spanning_cameras(reference, pixels))[0].astype(np.float64)
+        cand = candidate.predict_d_frac([pixels], _spanning_cameras(candidate, pixels))[0].astype(np.float64)
         if np.any(ref <= 0) or np.any(cand <= 0):
             raise DepthModelError("a model output a non-positive disparity: cannot compare in log space")
         ratios.append(np.abs(np.log(cand / ref)).ravel())
@@ -192,6 +193,19 @@ def compare_models(reference: DepthModel, candidate: DepthModel, images: Iterabl
 def _pixels(image: CalibImage) -> np.ndarray:
     """A calibration/check image as pixels: arrays as given, files read as gray."""
     return image if isinstance(image, np.ndarray) else load_image(Path(image), color=False)
+
+
+def _spanning_cameras(model: DepthModel, pixels: np.ndarray) -> list[PinholeCamera] | None:
+    """For a contract-v2 model: the camera whose canonical warp maps ``pixels`` exactly onto the
+    whole network input (the v1 resize), so calibration and agreement checks need no intrinsics:
+    they only need inputs distributed like real ones. None for v1 models."""
+    if not model.contract.uses_canonical_camera:
+        return None
+    canonical = model.contract.canonical_camera()
+    h, w = pixels.shape[:2]
+    sx, sy = canonical.width_px / w, canonical.height_px / h
+    return [PinholeCamera(fx_px=canonical.fx_px / sx, fy_px=canonical.fy_px / sy, cx_px=(w - 1) / 2,
+                          cy_px=(h - 1) / 2, width_px=w, height_px=h)]
 
 
 def _drop_unused_opsets(model) -> None:
@@ -216,7 +230,8 @@ class _CalibrationReader:
         if image is None:
             return None
         self.count += 1
-        return {self._model.contract.input_name: self._model.preprocess([_pixels(image)])}
+        pixels = _pixels(image)
+        return {self._model.contract.input_name: self._model.preprocess([pixels], _spanning_cameras(self._model, pixels))}
 
 
 def quantize_model(src_onnx: str | Path, out_onnx: str | Path, calib_images: Iterable[CalibImage],
