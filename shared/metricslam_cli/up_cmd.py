@@ -9,7 +9,9 @@ Every port the stack binds is checked first: a taken one is refused (exit code 1
 naming it and the flag that moves it. Children are supervised: restarted if they die, or if
 they stop answering their health probe (router query, depth ``/healthz``, SLAM health query) for
 ``--hang-timeout`` seconds, with exponential backoff while they keep failing; Ctrl-C / SIGTERM
-stops them all.
+stops them all. The SLAM service always has a state directory (``--state-dir``, else
+``SLAM_STATE_DIR``, else a temporary folder removed when ``up`` stops), so a restarted SLAM child
+continues each camera's trajectory as a new linked segment instead of starting over at the origin.
 """
 
 from __future__ import annotations
@@ -50,6 +52,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "default 20; 0: only restart children that exit)")
     p.add_argument("--probe-period", type=float, default=2.0, metavar="S",
                    help="seconds between health probes (default 2)")
+    p.add_argument("--state-dir", metavar="DIR",
+                   help="where the SLAM service keeps each camera's trajectory, so a restarted SLAM "
+                        "service continues it (default: SLAM_STATE_DIR, else a temporary folder "
+                        "removed when up stops)")
     p.add_argument("--rerun", metavar="TARGET",
                    help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
     p.set_defaults(func=run)
@@ -59,18 +65,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     require(*(() if args.no_scale else ("depth-service",)), "slam-service", command="up")
 
+    import os
     import signal
+    import tempfile
     from pathlib import Path
 
     from metricslam_slam.supervisor.launcher import Stack
 
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    # without state, a SLAM service the supervisor restarts starts its cameras over at the origin
+    state_dir = args.state_dir or os.environ.get("SLAM_STATE_DIR") or None
+    scratch = None if state_dir else tempfile.TemporaryDirectory(prefix="metricslam-up-state-")
     stack = Stack(args.zenoh_endpoint, depth_port=args.depth_port, depth_host=args.depth_host,
                   use_scale=not args.no_scale, preset=args.preset, session_kind=args.session_kind,
                   log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun,
                   config_path=args.config, restart_delay_max_s=args.restart_delay_max,
-                  hang_timeout_s=args.hang_timeout, probe_period_s=args.probe_period)
+                  hang_timeout_s=args.hang_timeout, probe_period_s=args.probe_period,
+                  state_dir=state_dir or scratch.name)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 
@@ -85,12 +97,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"{child.name:<14} hung  no health answer for {silent_s:.1f} s; killed, restarting",
               flush=True)
 
-    stack.start(on_ready=ready)
-    print(f"UP: publish frames on metricslam/<camera_id>/frame via {args.zenoh_endpoint}; "
-          "Ctrl-C stops", flush=True)
     try:
-        stack.supervise(on_restart=restarted, on_hung=hung)
+        stack.start(on_ready=ready)
+        print(f"UP: publish frames on metricslam/<camera_id>/frame via {args.zenoh_endpoint}; "
+              "Ctrl-C stops", flush=True)
+        try:
+            stack.supervise(on_restart=restarted, on_hung=hung)
+        finally:
+            stack.stop()
+            print("stopped", flush=True)
     finally:
-        stack.stop()
-        print("stopped", flush=True)
+        if scratch is not None:
+            scratch.cleanup()
     return 0

@@ -175,6 +175,9 @@ class Stack:
         use_scale, preset, session_kind: passed to the SLAM service.
         config_path: the SLAM service's system config file (``--config``; else its children
             inherit ``METRICSLAM_CONFIG`` from this process's environment).
+        state_dir: the SLAM service's state directory (``--state-dir``: each camera's
+            trajectory, so a restarted SLAM child continues its cameras as new linked segments);
+            None: its ``SLAM_STATE_DIR``, if any, from this process's environment.
         log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log`` (else discarded).
         rerun: live view target of the SLAM service (``web`` or ``FILE.rrd``).
         hang_timeout_s: a child whose health probe has not answered for this long is killed and
@@ -190,7 +193,7 @@ class Stack:
                  ready_timeout_s: float = 60.0, rerun: str | None = None,
                  config_path: str | None = None, restart_delay_max_s: float = 30.0,
                  stable_after_s: float = 30.0, hang_timeout_s: float = 20.0,
-                 probe_period_s: float = 2.0) -> None:
+                 probe_period_s: float = 2.0, state_dir: str | None = None) -> None:
         check_endpoint(zenoh_endpoint)
         if hang_timeout_s < 0 or probe_period_s <= 0:
             raise ServiceError(f"--hang-timeout must be >= 0 and --probe-period > 0 s, got "
@@ -237,8 +240,11 @@ class Stack:
             slam += ["--rerun", rerun]
         if config_path:
             slam += ["--config", str(config_path)]
+        if state_dir:
+            slam += ["--state-dir", str(state_dir)]
         self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
-                                   f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})",
+                                   f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"
+                                   + (f"; state in {state_dir}" if state_dir else ""),
                                    probe=self._zenoh_probe.slam))
         if log_dir:
             for child in self.children:
