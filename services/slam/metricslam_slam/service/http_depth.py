@@ -40,11 +40,18 @@ class HttpDepthSource:
         connect_timeout_s: connect timeout (s); short, so a dead service is noticed fast.
         retries: extra attempts after the first for connection errors, timeouts, 429/5xx.
         backoff_s: sleep before retry k is ``backoff_s * 2**k``.
+        down_timeout_s: while the service is known to be unreachable (the last request or probe
+            failed), a keyframe gets ONE attempt with this read timeout instead of ``retries + 1``
+            attempts of ``timeout_s``: a frozen service (SIGSTOP: it still accepts connections) cost
+            ~15.6 s per keyframe before, and the back end's keyframe-ordered work queued behind it
+            (bench/results/stack_faults_depth_stop.md). The periodic probe marks it reachable again.
     """
 
     def __init__(self, url: str, timeout_s: float = 5.0, connect_timeout_s: float = 0.5,
-                 retries: int = 2, backoff_s: float = 0.2) -> None:
+                 retries: int = 2, backoff_s: float = 0.2, down_timeout_s: float = 0.5) -> None:
         self.url = url.rstrip("/")
+        self.down_timeout_s = float(down_timeout_s)
+        self._connect_timeout_s = float(connect_timeout_s)
         self.retries = int(retries)
         self.backoff_s = float(backoff_s)
         self._client = httpx.Client(base_url=self.url, timeout=httpx.Timeout(
@@ -100,12 +107,15 @@ class HttpDepthSource:
                   "cx": f"{camera.cx_px:.6f}", "cy": f"{camera.cy_px:.6f}"}
         headers = {"Content-Type": "image/png", "Accept": "application/x-npy"}
         error = "no attempt"
-        for attempt in range(self.retries + 1):
+        down = self._reachable is False
+        attempts = 1 if down else self.retries + 1
+        timeout = httpx.Timeout(self.down_timeout_s, connect=self._connect_timeout_s) if down else httpx.USE_CLIENT_DEFAULT
+        for attempt in range(attempts):
             if attempt:
                 time.sleep(self.backoff_s * 2 ** (attempt - 1))
             try:
                 response = self._client.post("/v1/disparity", params=params, content=body,
-                                             headers=headers)
+                                             headers=headers, timeout=timeout)
             except httpx.HTTPError as exc:
                 error = f"{type(exc).__name__}: {exc}"
                 continue
@@ -123,8 +133,8 @@ class HttpDepthSource:
             return inv_depth
         self.requests_failed += 1
         self._mark(False, error)
-        raise DepthSourceError(f"depth service at {self.url} failed after {self.retries + 1} "
-                               f"attempt(s): {error}; start it (`metricslam depth-service`) or "
+        raise DepthSourceError(f"depth service at {self.url} failed after {attempts} "
+                               f"attempt(s){' (known down: one short attempt)' if down else ''}: {error}; start it (`metricslam depth-service`) or "
                                "run with --no-scale")
 
     def close(self) -> None:
