@@ -75,3 +75,17 @@ def test_poses_refuses_a_recording_without_any_scale(tmp_path) -> None:
     old = {i: decode(_without(encode(_pose(i, ScaleState.METRIC, True)), "scale_state", "scale_factors"))
            for i in range(3)}
     assert unscaled_frames(old, None, 3) == []
+
+
+def test_poses_writes_what_arrived_when_frames_are_missing(tmp_path) -> None:
+    """A lossy run (a fault mid-replay) keeps the poses that did arrive; the caller still fails."""
+    poses = {i: _pose(i, ScaleState.METRIC, True) for i in (0, 1, 3, 4)}  # frame 2 never came
+    with pytest.raises(ServiceError, match="1 of 5 frames have no pose"):
+        write_poses(tmp_path / "strict.txt", "kitti", poses, None, 5)
+    assert not (tmp_path / "strict.txt").exists()
+    n = write_poses(tmp_path / "est.tum", "tum", poses, None, 5, missing_ok=True)
+    assert n == 4 and list(np.round(read_tum(tmp_path / "est.tum")[1][:, 2, 3])) == [0, 1, 3, 4]
+    n = write_poses(tmp_path / "est.txt", "kitti", poses, None, 5, missing_ok=True)
+    assert n == 4 and list(np.round(read_kitti_poses(tmp_path / "est.txt")[:, 2, 3])) == [0, 1, 1, 3, 4]
+    with pytest.raises(ServiceError, match="5 of 5 frames have no pose"):
+        write_poses(tmp_path / "none.txt", "kitti", {}, None, 5, missing_ok=True)

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from metricslam_slam.tools.client import PoseRecorder, query_trajectory
-    from metricslam_slam.tools.recording import unscaled_frames, write_mcap, write_poses
+    from metricslam_slam.tools.recording import missing_error, missing_frames, unscaled_frames, write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
     session = open_client(args.zenoh_endpoint)
@@ -73,11 +73,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
     unscaled = unscaled_frames(recorder.poses, trajectory, args.frames)
     skip = [] if args.include_unscaled else unscaled
-    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames, skip)
+    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames, skip, missing_ok=True)
     print(f"wrote {n_written} poses to {args.out} ({_states(recorder.poses, trajectory, args.frames)})")
+    where = "left out" if args.format == "tum" else "a placeholder line each"
     if skip:
-        where = "left out" if args.format == "tum" else "a placeholder line each"
         print(f"skipped {len(skip)} unscaled poses (frames {_ranges(skip)}; {where}); --all records them")
+    missing = missing_frames(recorder.poses, trajectory, args.frames)
+    if missing:  # what arrived is written; the run still fails, naming what did not
+        raise missing_error(missing, args.frames)
     return 0
 
 

@@ -29,33 +29,52 @@ def unscaled_frames(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage
             if i in poses and poses[i].effective_scale_state() is ScaleState.UNSCALED]
 
 
+def _source(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage | None) -> dict[int, tuple]:
+    if trajectory is not None:
+        return {int(i): (int(t), T) for i, t, T in
+                zip(trajectory.frame_index, trajectory.t_ns, trajectory.T_world_cam)}
+    return {i: (p.t_ns, p.T_world_cam) for i, p in poses.items()}
+
+
+def missing_frames(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage | None,
+                   n_frames: int) -> list[int]:
+    """Frames ``0..n_frames-1`` with no pose in ``trajectory`` (if given) or the live ``poses``."""
+    source = _source(poses, trajectory)
+    return [i for i in range(n_frames) if i not in source]
+
+
+def missing_error(missing: list[int], n_frames: int) -> ServiceError:
+    return ServiceError(f"{len(missing)} of {n_frames} frames have no pose (first: {missing[:10]}); "
+                        "was the replay faster than the service (queue drops on …/status) or "
+                        "did the recorder start late? Raise --timeout or lower --rate")
+
+
 def poses_in_order(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage | None,
-                   n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+                   n_frames: int, fill_missing: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(t_ns (N,), T_world_cam (N, 4, 4))`` of frames ``0..n_frames-1`` in frame order, from
-    ``trajectory`` if given else from the live ``poses``.
+    ``trajectory`` if given else from the live ``poses``. ``fill_missing``: a frame without a pose
+    gets ``t_ns`` 0 and the identity (the caller marks it, :func:`missing_frames`).
 
     Raises:
-        ServiceError: a frame has no pose (names the first missing ones).
+        ServiceError: a frame has no pose and ``fill_missing`` is False (names the first ones).
     """
-    if trajectory is not None:
-        source = {int(i): (int(t), T) for i, t, T in
-                  zip(trajectory.frame_index, trajectory.t_ns, trajectory.T_world_cam)}
-    else:
-        source = {i: (p.t_ns, p.T_world_cam) for i, p in poses.items()}
+    source = _source(poses, trajectory)
     missing = [i for i in range(n_frames) if i not in source]
-    if missing:
-        raise ServiceError(f"{len(missing)} of {n_frames} frames have no pose (first: {missing[:10]}); "
-                           "was the replay faster than the service (queue drops on …/status) or "
-                           "did the recorder start late? Raise --timeout or lower --rate")
-    t_ns = np.array([source[i][0] for i in range(n_frames)], dtype=np.int64)
-    T = np.array([source[i][1] for i in range(n_frames)], dtype=np.float64).reshape(n_frames, 4, 4)
+    if missing and not fill_missing:
+        raise missing_error(missing, n_frames)
+    blank = (0, np.eye(4))
+    t_ns = np.array([source.get(i, blank)[0] for i in range(n_frames)], dtype=np.int64)
+    T = np.array([source.get(i, blank)[1] for i in range(n_frames)], dtype=np.float64).reshape(n_frames, 4, 4)
     return t_ns, T
 
 
 def write_poses(path: str | Path, fmt: str, poses: dict[int, PoseMessage],
-                trajectory: TrajectoryMessage | None, n_frames: int, skip: list[int] = ()) -> int:
+                trajectory: TrajectoryMessage | None, n_frames: int, skip: list[int] = (),
+                missing_ok: bool = False) -> int:
     """Write frames ``0..n_frames-1`` except ``skip`` to ``path`` as ``kitti`` or ``tum``;
-    returns the number of poses written.
+    returns the number of poses written. ``missing_ok``: frames without any pose are treated
+    like ``skip`` (written what arrived; the caller still reports them, :func:`missing_frames`)
+    instead of refusing to write anything.
 
     TUM lines carry their timestamp, so a skipped frame is simply left out. A KITTI file has one
     line per frame and no frame numbers (evaluation pairs it with the ground truth line by line),
@@ -68,9 +87,12 @@ def write_poses(path: str | Path, fmt: str, poses: dict[int, PoseMessage],
     """
     if fmt not in ("kitti", "tum"):
         raise ServiceError(f"unknown pose format {fmt!r}; use kitti or tum")
-    t_ns, T = poses_in_order(poses, trajectory, n_frames)
+    missing = missing_frames(poses, trajectory, n_frames)
+    if missing and (not missing_ok or len(missing) == n_frames):
+        raise missing_error(missing, n_frames)
+    t_ns, T = poses_in_order(poses, trajectory, n_frames, fill_missing=True)
     keep = np.ones(n_frames, dtype=bool)
-    keep[[i for i in skip if 0 <= i < n_frames]] = False
+    keep[[i for i in list(skip) + missing if 0 <= i < n_frames]] = False
     if not keep.any():
         raise ServiceError(f"all {n_frames} poses are unscaled (no metric scale: is the depth "
                            "service reachable? see …/status depth_reachable); --all records them")
