@@ -11,7 +11,8 @@ COPY pyproject.toml README.md ./
 COPY shared/ shared/
 COPY services/ services/
 COPY training/metricslam_train/__init__.py training/metricslam_train/__init__.py
-RUN pip install ".[slam-service]" && useradd --system --uid 10001 metricslam
+RUN pip install ".[slam-service]" && useradd --system --uid 10001 metricslam \
+    && mkdir -p /var/lib/metricslam/state && chown metricslam /var/lib/metricslam/state
 
 USER metricslam
 ENV SLAM_ZENOH_ENDPOINT=tcp/zenoh:7447 SLAM_DEPTH_URL=http://depth-lb:8100

@@ -139,6 +139,10 @@ def test_environment_builds_valid_settings(compose: dict, monkeypatch) -> None:
         monkeypatch.setenv(name, value)
     settings = SlamServiceSettings()
     assert settings.zenoh_endpoint == "tcp/zenoh:7447" and settings.depth_url == "http://depth-lb:8100"
+    # the SLAM state is on a named volume, so a restarted container continues its cameras
+    assert settings.state_dir is not None
+    mounts = {m.split(":")[1]: m.split(":")[0] for m in compose["services"]["slam"]["volumes"]}
+    assert mounts[str(settings.state_dir)] in compose["volumes"]
     config = load_system_config(env=environment)  # every METRICSLAM_* variable is a real field
     assert config.vo.preset == "kitti" and config.use_scale and config.queues.frames == 8
 
