@@ -370,7 +370,7 @@ def test_checkpoints_carry_the_weight_average_and_export_uses_it(tmp_path):
 def test_sgbm_range_is_part_of_the_cache_name(tmp_path):
     from metricslam_train.train import prepare_caches
 
-    paths, _ = prepare_caches(_config(tmp_path, sgbm_num_disparities=64))
+    paths = prepare_caches(_config(tmp_path, sgbm_num_disparities=64)).paths
     assert paths[0].name.endswith("_nd64.npz")
     with pytest.raises(ValidationError):
         _config(tmp_path, sgbm_num_disparities=100)
@@ -394,3 +394,16 @@ def test_fine_tuning_starts_from_an_exported_onnx_model(tmp_path):
     assert torch.allclose(ft["model"][key], trained[key], atol=1e-6)  # a vanishing step away
     with pytest.raises(TrainingError, match="does not exist"):
         weights_from_onnx(tmp_path / "missing.onnx")
+
+
+def test_canonical_runs_know_each_caches_focal_length_at_the_input(tmp_path):
+    from metricslam_train.data import read_stereo_sequence
+    from metricslam_train.train import canonical_label_scales, prepare_caches
+
+    assert prepare_caches(_config(tmp_path)).input_fx_px is None  # contract v1: not needed
+    cfg = _config(tmp_path, canonical_fx_px=100.0, canonical_fy_px=90.0)
+    caches = prepare_caches(cfg)
+    seq = read_stereo_sequence(cfg.sequences[0])
+    width_full = cv2.imread(str(seq.left_paths[0]), cv2.IMREAD_UNCHANGED).shape[1]
+    assert caches.input_fx_px == [pytest.approx(seq.fx_px * W / width_full)]
+    assert canonical_label_scales(cfg, caches) == [pytest.approx(100.0 / caches.input_fx_px[0])]

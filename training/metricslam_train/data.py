@@ -256,8 +256,8 @@ class StereoPairs(torch.utils.data.Dataset):
                 part = {k: z[k] for k in ("left", "bm_left", "bm_right", "baseline_ratio")}
                 part["right"] = z["right"] if "right" in z.files else part["left"]  # depth frames: none
                 part["stereo"] = bool(z["stereo"]) if "stereo" in z.files else True
-            k = 1.0 if label_scales is None else float(label_scales[len(parts)])
-            part["baseline_ratio"] = np.float32(part["baseline_ratio"] / k)
+            label_scale = 1.0 if label_scales is None else float(label_scales[len(parts)])
+            part["baseline_ratio"] = np.float32(part["baseline_ratio"] / label_scale)
             parts.append(part)
         self.left = np.concatenate([p["left"] for p in parts])
         self.right = np.concatenate([p["right"] for p in parts])

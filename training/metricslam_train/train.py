@@ -13,6 +13,7 @@ import logging
 import time
 from collections import Counter
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -35,9 +36,19 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
-    """Build missing caches; return their paths and a description of the training set."""
-    paths, names, seen_names = [], [], set()
+class Caches(NamedTuple):
+    """What :func:`prepare_caches` returns: the cache files, a description of the training set,
+    and (contract v2 only, else None) each cache's focal length at the network input, px."""
+
+    paths: list[Path]
+    description: str
+    input_fx_px: list[float] | None
+
+
+def prepare_caches(cfg: TrainConfig) -> Caches:
+    """Build missing caches; return them with a description of the training set."""
+    canonical = cfg.canonical_fx_px is not None
+    paths, names, seen_names, input_fx = [], [], set(), []
     for entry in cfg.sequences:
         folders = expand_sequences(entry)
         n_pairs = 0
@@ -56,6 +67,8 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
                             num_disparities=cfg.sgbm_num_disparities, exact_synthetic=exact,
                             disparity_offset_px=offset_px)
             paths.append(path)
+            if canonical:
+                input_fx.append(seq.fx_px * cfg.input_width / _image_width(seq.left_paths[0]))
             n_pairs += len(seq.left_paths)
         label = seq.name if len(folders) == 1 else f"{len(folders)} sequences"
         fixed = f", disparity offset {cfg.disparity_offsets_px[seq.name]:+.2f} px removed" \
@@ -65,8 +78,9 @@ def prepare_caches(cfg: TrainConfig) -> tuple[list[Path], str]:
     if unknown:
         raise TrainingError(f"disparity_offsets_px names {sorted(unknown)} match no sequence (known: "
                             f"{sorted(seen_names)})")
-    depth_paths, depth_names = _depth_frame_caches(cfg)
-    return paths + depth_paths, "; ".join(_with_counts(names) + depth_names)
+    depth_paths, depth_names, depth_fx = _depth_frame_caches(cfg)
+    return Caches(paths + depth_paths, "; ".join(_with_counts(names) + depth_names),
+                  input_fx + depth_fx if canonical else None)
 
 
 def _with_counts(names: list[str]) -> list[str]:
@@ -75,9 +89,10 @@ def _with_counts(names: list[str]) -> list[str]:
     return [name if counts[name] == 1 else f"{name}, listed {counts[name]}x" for name in dict.fromkeys(names)]
 
 
-def _depth_frame_caches(cfg: TrainConfig) -> tuple[list[Path], list[str]]:
-    """Build missing caches of ``cfg.depth_frames`` (each path listed ``repeat`` times)."""
-    paths, names = [], []
+def _depth_frame_caches(cfg: TrainConfig) -> tuple[list[Path], list[str], list[float]]:
+    """Build missing caches of ``cfg.depth_frames`` (each path listed ``repeat`` times); also each
+    path's focal length at the network input (px)."""
+    paths, names, input_fx = [], [], []
     for frames in cfg.depth_frames:
         stop = "end" if frames.stop is None else frames.stop
         tag = f"{Path(frames.folder).name}_f{frames.first}-{stop}_{cfg.input_height}x{cfg.input_width}_depth"
@@ -89,9 +104,12 @@ def _depth_frame_caches(cfg: TrainConfig) -> tuple[list[Path], list[str]]:
         paths.extend([path] * frames.repeat)
         with np.load(path) as z:
             n_images = len(z["left"])
+            fx_full = float(z["fx_px"])
+        first = sorted((Path(frames.folder) / "image_02").glob("*.png"))[0]
+        input_fx.extend([fx_full * cfg.input_width / _image_width(first)] * frames.repeat)
         names.append(f"{Path(frames.folder).name} frames {frames.first}..{stop} ({n_images} images with "
                      f"metric depth, supervision only, x{frames.repeat}, {frames.folder})")
-    return paths, names
+    return paths, names, input_fx
 
 
 def expand_sequences(entry: str) -> list[Path]:
@@ -121,34 +139,12 @@ def checkpoint_meta(cfg: TrainConfig, training_data: str) -> dict:
     }
 
 
-def canonical_label_scales(cfg: TrainConfig, cache_paths: list[Path]) -> list[float] | None:
-    """Per cache ``k = canonical_fx / fx_input`` (contract v2), ``fx_input`` = the drive's focal length
-    at the cached input width; None for contract v1. Each cache records ``fx_px`` (full resolution)
-    and, through its source images, the full width: the cached d_frac is a fraction of that width."""
-    if cfg.canonical_fx_px is None:
+def canonical_label_scales(cfg: TrainConfig, caches: Caches) -> list[float] | None:
+    """Per cache ``k = canonical_fx / fx_input`` (contract v2: the labels' d_frac is asked for at the
+    canonical focal length instead of the drive's); None for contract v1."""
+    if caches.input_fx_px is None:
         return None
-    widths = source_widths(cfg)
-    if len(widths) != len(cache_paths):
-        raise TrainingError(f"{len(cache_paths)} caches but {len(widths)} source folders: rebuild the caches")
-    scales = []
-    for path, width_full in zip(cache_paths, widths, strict=True):
-        with np.load(path) as z:
-            fx_full = float(z["fx_px"])
-        scales.append(cfg.canonical_fx_px / (fx_full * cfg.input_width / width_full))
-    return scales
-
-
-def source_widths(cfg: TrainConfig) -> list[float]:
-    """Full-resolution image width (px) behind each cache, in :func:`prepare_caches`' order."""
-    widths = []
-    for entry in cfg.sequences:
-        for folder in expand_sequences(entry):
-            seq = read_stereo_sequence(folder, cfg.frame_step)
-            widths.append(_image_width(seq.left_paths[0]))
-    for frames in cfg.depth_frames:
-        first = sorted((Path(frames.folder) / "image_02").glob("*.png"))[0]
-        widths.extend([_image_width(first)] * frames.repeat)
-    return widths
+    return [cfg.canonical_fx_px / fx for fx in caches.input_fx_px]
 
 
 def _image_width(path: str | Path) -> float:
@@ -194,8 +190,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
-    cache_paths, training_data = prepare_caches(cfg)
-    data = StereoPairs(cache_paths, canonical_label_scales(cfg, cache_paths))
+    caches = prepare_caches(cfg)
+    training_data = caches.description
+    data = StereoPairs(caches.paths, canonical_label_scales(cfg, caches))
     if len(data) < 1:
         raise TrainingError("the training caches hold no pairs")
 
