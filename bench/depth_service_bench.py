@@ -1,7 +1,8 @@
 """Benchmark the depth service over HTTP: req/s and latency percentiles, JSON vs binary, and a soak.
 
 Starts the real service (``metricslam depth-service``) on 127.0.0.1, loads KITTI-size PNG frames
-from a KITTI odometry sequence, and drives it with keep-alive ``http.client`` connections, one
+from a KITTI odometry sequence (``--media pgm``: the same gray pixels as binary PGM, what the SLAM
+service uploads), and drives it with keep-alive ``http.client`` connections, one
 thread per concurrent client (the client is cheap so that most CPU goes to the server; client and
 server still share the machine, which the report says).
 
@@ -26,9 +27,12 @@ from pathlib import Path
 
 import numpy as np
 from bench.machine import command_line, describe
+from metricslam_slam.service.http_depth import PGM_MEDIA_TYPE, encode_pgm
 from tests.depth_service_process import ServiceProcess
 
 FX_PX = 718.856
+#: --media -> Content-Type of the uploads
+MEDIA_TYPES = {"png": "image/png", "pgm": PGM_MEDIA_TYPE}
 
 
 @dataclass
@@ -124,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--soak-clients", type=int, default=4)
     parser.add_argument("--threads", type=int, default=None, help="DEPTH_THREADS for the server")
     parser.add_argument("--max-concurrency", type=int, default=None, help="DEPTH_MAX_CONCURRENCY")
+    parser.add_argument("--media", choices=sorted(MEDIA_TYPES), default="png",
+                        help="upload the frames as PNG files (as read) or as binary PGM of the same pixels")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--json", type=Path, default=None, help="write raw numbers as JSON here")
     args = parser.parse_args(argv)
@@ -135,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     frames = [p.read_bytes() for p in paths]
     import cv2
     shape = cv2.imdecode(np.frombuffer(frames[0], np.uint8), cv2.IMREAD_UNCHANGED).shape
+    if args.media == "pgm":
+        frames = [encode_pgm(cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_GRAYSCALE)) for f in frames]
+    media_type = MEDIA_TYPES[args.media]
 
     server_settings: dict[str, object] = {"max_queue": 256, "max_connections": 512}
     if args.threads is not None:
@@ -149,11 +158,11 @@ def main(argv: list[str] | None = None) -> int:
         conn.request("GET", "/v1/model")
         server_settings["model"] = json.loads(conn.getresponse().read())["model_id"]
         conn.close()
-        run_level(args.port, frames, 2, True, 100, service.pid)  # warm up (first-call allocations, caches)
+        run_level(args.port, frames, 2, True, 100, service.pid, media_type)  # warm up (first-call allocations, caches)
         rss_start = rss_mib(service.pid)
         for clients in args.clients:
             for binary in (False, True):
-                r = run_level(args.port, frames, clients, binary, args.requests, service.pid)
+                r = run_level(args.port, frames, clients, binary, args.requests, service.pid, media_type)
                 results.append(r)
                 print(f"{clients:>3} clients {r.form:>4}: {r.rps:7.1f} req/s  p50 {r.pct(50):6.1f} ms  "
                       f"p99 {r.pct(99):6.1f} ms  server CPU {r.server_cpu_s / r.requests * 1e3:.1f} ms/req  "
@@ -165,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
             done, soak_statuses, soak_lat = 0, {}, []
             t0 = time.perf_counter()
             while done < args.soak:
-                r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step, service.pid)
+                r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step, service.pid,
+                              media_type)
                 done += r.requests
                 soak_lat.extend(r.latencies_ms)
                 for code, n in r.statuses.items():
@@ -181,13 +191,15 @@ def main(argv: list[str] | None = None) -> int:
     load_after = os.getloadavg()
 
     command = command_line("bench.depth_service_bench", argv)
-    report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after)
+    report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after,
+                    media_type)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(report)
         print(f"wrote {args.out}")
     if args.json:
-        raw = {"levels": [{"clients": r.clients, "form": r.form, "requests": r.requests, "rps": r.rps,
+        raw = {"media_type": media_type, "load_average_before": list(load_before),
+               "load_average_after": list(load_after), "levels": [{"clients": r.clients, "form": r.form, "requests": r.requests, "rps": r.rps,
                            "p50_ms": r.pct(50), "p90_ms": r.pct(90), "p99_ms": r.pct(99),
                            "server_cpu_ms_per_req": r.server_cpu_s / r.requests * 1e3,
                            "client_cpu_ms_per_req": r.client_cpu_s / r.requests * 1e3,
@@ -197,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_frames: int,
-           server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple) -> str:
+           server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple,
+           media_type: str = "image/png") -> str:
     lines = [
         "# Depth service benchmark",
         "",
@@ -207,7 +220,7 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
         "and the numbers are pessimistic); the client runs on the same 2 cores as the server.",
         "",
-        f"Input: {n_frames} real KITTI PNG frames ({shape[1]}x{shape[0]} gray), POST /v1/disparity, "
+        f"Input: {n_frames} real KITTI frames ({shape[1]}x{shape[0]} gray) sent as `{media_type}`, POST /v1/disparity, "
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
         f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items() if k != 'model')} "
         f"(other settings default), serving model `{server_settings.get('model')}`.",

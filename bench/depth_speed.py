@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import command_line
+from metricslam.camera import PinholeCamera
 from metricslam.depth import DepthModel
 
 
@@ -51,14 +52,16 @@ def main(argv: list[str] | None = None) -> int:
 
     rng = np.random.default_rng(0)
     image = rng.integers(0, 256, (370, 1226), dtype=np.uint8)
+    # KITTI odometry 06's camera (a contract-version-2 model needs all of it; version 1 reads fx only)
+    camera = PinholeCamera(fx_px=707.0, fy_px=707.0, cx_px=601.9, cy_px=183.1, width_px=1226, height_px=370)
     results = {}
     for threads in args.threads:
         model = DepthModel.load(args.model, threads=threads)
-        x = model.preprocess([image])
+        x = model.preprocess([image], [camera])
         session, c = model._session, model.contract  # noqa: SLF001 — timing the bare network
         net = _time(lambda session=session, c=c, x=x: session.run([c.output_name], {c.input_name: x}),
                     args.warmup, args.repeats)
-        full = _time(lambda model=model: model.predict_inv_depth(image, 707.0), args.warmup, args.repeats)
+        full = _time(lambda model=model: model.predict_inv_depth(image, camera=camera), args.warmup, args.repeats)
         results[str(threads)] = {"network": net, "predict_inv_depth_1226x370": full}
     c = model.contract
     lines = ["| threads | network median (ms) | network p90 | network CPU time median (ms) | "

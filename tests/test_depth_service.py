@@ -169,6 +169,22 @@ def test_jpeg_and_colour_input_are_accepted(client):
     np.testing.assert_allclose(gray["d_frac"], rgb["d_frac"], rtol=1e-5, atol=1e-7)
 
 
+def _pgm(image: np.ndarray, max_value: int = 255, comment: bytes = b"") -> bytes:
+    height, width = image.shape
+    raster = image.astype(">u2" if max_value > 255 else np.uint8).tobytes()
+    return b"P5\n" + comment + b"%d %d\n%d\n" % (width, height, max_value) + raster
+
+
+def test_binary_pgm_is_the_same_picture_as_png(client):
+    """The fast path (the SLAM service's keyframes): gray pixels as they are, no inflate."""
+    png = _post(client, PNG, headers={"Accept": "application/x-npy"})
+    for ctype in ("image/x-portable-graymap", "image/x-pgm"):
+        pgm = _post(client, _pgm(IMG, comment=b"# a comment line\n"), ctype, headers={"Accept": "application/x-npy"})
+        assert pgm.status_code == 200, pgm.text
+        assert pgm.content == png.content  # bit for bit: the network sees the same pixels
+        assert int(pgm.headers["x-image-width-px"]) == 1226
+
+
 def test_inverse_depth_scales_with_fx_and_width(client):
     a = _post(client, PNG, fx=FX_PX).json()
     b = _post(client, PNG, fx=2 * FX_PX).json()
@@ -222,6 +238,10 @@ def test_batch_matches_single_requests_json_and_npy(client):
         (_jpeg(IMG)[:-500], "image/jpeg", "undecodable-image"),
         (PNG, "image/jpeg", "undecodable-image"),  # declared type does not match the bytes
         (_png_header_only(0, 10), "image/png", "undecodable-image"),
+        (b"P2\n4 4\n255\n" + b"0 " * 16, "image/x-portable-graymap", "undecodable-image"),  # ASCII PGM
+        (b"P5\n1226 370\n255\n" + bytes(1000), "image/x-portable-graymap", "undecodable-image"),  # short raster
+        (b"P5\n1226 370\n", "image/x-portable-graymap", "undecodable-image"),  # no maxval
+        (PNG, "image/x-portable-graymap", "undecodable-image"),
     ],
 )
 def test_undecodable_images_are_400(client, body, ctype, code):
@@ -231,7 +251,7 @@ def test_undecodable_images_are_400(client, body, ctype, code):
 @pytest.mark.parametrize("ctype", ["text/plain", "image/gif", "application/octet-stream", None])
 def test_unsupported_media_type_is_415(client, ctype):
     body = _assert_problem(_post(client, PNG, ctype), 415, "unsupported-media-type")
-    assert "image/png" in body["detail"]
+    assert "image/png" in body["detail"] and "image/x-portable-graymap" in body["detail"]
 
 
 def test_too_large_is_413(client):
@@ -354,6 +374,23 @@ def test_header_sniffing_reports_the_encoded_size(width, height, as_png):
     data, media = (_png(image), "image/png") if as_png else (_jpeg(image), "image/jpeg")
     assert image_size(data, media) == (width, height)
     assert decode_image(data, media, max_pixels=10**8).shape == (height, width)
+
+
+def test_pgm_header_bomb_is_413_before_any_pixel_is_read(client):
+    bomb = b"P5\n100000 100000\n65535\n" + bytes(64)  # declares 20 GB of 16-bit pixels
+    _assert_problem(_post(client, bomb, "image/x-portable-graymap"), 413, "image-too-large")
+
+
+@settings(max_examples=30, deadline=None)
+@given(width=st.integers(2, 300), height=st.integers(2, 200), max_value=st.sampled_from([1, 100, 255, 256, 1023, 65535]),
+       seed=st.integers(0, 2**16))
+def test_pgm_decodes_to_its_pixels_rescaled_to_8_bit(width, height, max_value, seed):
+    pixels = np.random.default_rng(seed).integers(0, max_value + 1, (height, width))
+    data = _pgm(pixels, max_value)
+    assert image_size(data, "image/x-portable-graymap") == (width, height)
+    image = decode_image(data, "image/x-portable-graymap", max_pixels=10**6)
+    assert image.dtype == np.uint8 and image.shape == (height, width)
+    np.testing.assert_array_equal(image, np.floor(pixels * 255 / max_value + 0.5).astype(np.uint8))
 
 
 @settings(max_examples=60, deadline=None)

@@ -134,7 +134,7 @@ def _batch_body_doc() -> dict[str, Any]:
         "requestBody": {
             "required": True,
             "description": "multipart/form-data with one part per image, all named 'images', each "
-            "with its own Content-Type image/png or image/jpeg (a filename is optional); other "
+            "with its own Content-Type image/png, image/jpeg or image/x-portable-graymap (a filename is optional); other "
             "parts are ignored",
             "content": {
                 "multipart/form-data": {
@@ -218,7 +218,8 @@ async def _answer(request: Request, uploads: list[Upload], query: CameraQuery, r
     response_model=DisparityResponse,
     summary="Disparity and metric inverse depth for one image",
     description=(
-        "Body: the encoded PNG or JPEG file with its Content-Type. Answer: the network's coarse "
+        "Body: the encoded PNG or JPEG file, or a binary (P5) PGM of gray pixels (the cheapest to "
+        "decode), with its Content-Type. Answer: the network's coarse "
         "L3 disparity (`d_frac`, fraction of image width) and `inv_depth_per_m` for a camera with "
         "focal length `fx` at the uploaded image's width (and `fy`, `cx`, `cy` for a canonical-camera "
         "model, contract version 2: cells outside its field of view are null / NaN). `Accept: "
@@ -255,8 +256,8 @@ async def disparity(request: Request, fx: FxQuery, fy: FyQuery = None, cx: CxQue
     summary="Disparity and metric inverse depth for several images in one network run",
     description=(
         "Body: multipart/form-data, one part per image, every part named `images` with its own "
-        "Content-Type (image/png or image/jpeg). One `fx` (and `fy`, `cx`, `cy`) applies to every "
-        "image; absent cx/cy default to each image's centre. Results keep "
+        "Content-Type (image/png, image/jpeg or image/x-portable-graymap). One `fx` (and `fy`, `cx`, "
+        "`cy`) applies to every image; absent cx/cy default to each image's centre. Results keep "
         "the upload order. `Accept: application/x-npy` returns a .npy float32 (B,2,h,w) stack."
     ),
     responses={200: _ok_doc("JSON by default; .npy with Accept: application/x-npy"), **_ERRORS},

@@ -20,7 +20,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 NPY_MEDIA_TYPE = "application/x-npy"
-IMAGE_MEDIA_TYPES = ("image/png", "image/jpeg")
+#: binary (P5) PGM: gray pixels as they are, the cheapest upload to decode (docs/depth_service.md)
+PGM_MEDIA_TYPE = "image/x-portable-graymap"
+IMAGE_MEDIA_TYPES = ("image/png", "image/jpeg", PGM_MEDIA_TYPE)
 
 # Plausible focal length of the caller's camera, pixels at the uploaded image's resolution; the
 # one place the service's fx bounds live. 1e5 px is a 0.6 degree field of view on a 1000 px wide

@@ -1,6 +1,8 @@
 """``HttpDepthSource``: the depth service over HTTP, as a :class:`metricslam.slam.depth_source.DepthSource`.
 
-``inv_depth_map(image, camera)`` PNG-encodes the keyframe image, ``POST``s it to
+``inv_depth_map(image, camera)`` sends the keyframe's gray pixels as a binary PGM (no compression:
+the service copies them instead of inflating a PNG, and this side skips a ~5 ms PNG encode per
+keyframe; a depth service too old to know PGM answers 415 once and gets PNG from then on), ``POST``s it to
 ``{url}/v1/disparity?fx=<fx_px>&fy=<fy_px>&cx=<cx_px>&cy=<cy_px>`` (``Accept: application/x-npy``)
 and returns the service's metric inverse depth (h, w) float32 (1/m) for that camera, covering the
 whole image; NaN in cells outside a canonical-camera (contract version 2) model's field of view. Connection failures, timeouts and 5xx/429 are
@@ -25,7 +27,11 @@ import httpx
 import numpy as np
 
 from metricslam.camera import PinholeCamera
-from metricslam.errors import DepthSourceError, ImageError
+from metricslam.depth.model import to_gray_u8
+from metricslam.errors import DepthSourceError
+
+#: what :func:`encode_pgm` sends (the depth service's ``metricslam_depth.schemas.PGM_MEDIA_TYPE``)
+PGM_MEDIA_TYPE = "image/x-portable-graymap"
 
 log = logging.getLogger(__name__)
 _RETRY_STATUS = {429, 502, 503, 504}
@@ -56,6 +62,7 @@ class HttpDepthSource:
         self.backoff_s = float(backoff_s)
         self._client = httpx.Client(base_url=self.url, timeout=httpx.Timeout(
             timeout_s, connect=connect_timeout_s))
+        self._media = PGM_MEDIA_TYPE
         self._lock = threading.Lock()
         self._reachable: bool | None = None
         self._last_error: str | None = None
@@ -102,10 +109,11 @@ class HttpDepthSource:
         Raises:
             DepthSourceError: the service could not be reached or answered garbage after retries.
         """
-        body = _encode_png(image)
+        media = self._media
+        body = encode_pgm(image) if media == PGM_MEDIA_TYPE else encode_png(image)
         params = {"fx": f"{camera.fx_px:.6f}", "fy": f"{camera.fy_px:.6f}",
                   "cx": f"{camera.cx_px:.6f}", "cy": f"{camera.cy_px:.6f}"}
-        headers = {"Content-Type": "image/png", "Accept": "application/x-npy"}
+        headers = {"Content-Type": media, "Accept": "application/x-npy"}
         error = "no attempt"
         down = self._reachable is False
         attempts = 1 if down else self.retries + 1
@@ -122,6 +130,11 @@ class HttpDepthSource:
             if response.status_code in _RETRY_STATUS:
                 error = f"HTTP {response.status_code}"
                 continue
+            if response.status_code == 415 and media == PGM_MEDIA_TYPE:
+                log.warning("depth service at %s does not take PGM (an older version?): sending PNG "
+                            "from now on (~5 ms more per keyframe on each side)", self.url)
+                self._media = "image/png"
+                return self.inv_depth_map(image, camera)
             if response.status_code != 200:
                 self.requests_failed += 1
                 self._mark(True)  # it answered: reachable, but refused this request
@@ -141,14 +154,19 @@ class HttpDepthSource:
         self._client.close()
 
 
-def _encode_png(image: np.ndarray) -> bytes:
-    if image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ImageError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)  # OpenCV writes BGR order
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+def encode_pgm(image: np.ndarray) -> bytes:
+    """(H, W) uint8 gray or (H, W, 3) uint8 RGB -> binary (P5) PGM bytes of its gray pixels (the
+    network's input kind; RGB is converted as :func:`metricslam.depth.model.to_gray_u8` does)."""
+    gray = np.ascontiguousarray(to_gray_u8(image))
+    height, width = gray.shape
+    return b"P5\n%d %d\n255\n" % (width, height) + gray.tobytes()
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """The same gray pixels as :func:`encode_pgm`, PNG-encoded (fast compression level)."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(to_gray_u8(image)), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
-        raise ImageError("OpenCV could not PNG-encode the keyframe image")
+        raise DepthSourceError("OpenCV could not PNG-encode the keyframe image")
     return buf.tobytes()
 
 
