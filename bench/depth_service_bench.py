@@ -1,8 +1,9 @@
 """Benchmark the depth service over HTTP: req/s and latency percentiles, JSON vs binary, and a soak.
 
 Starts the real service (``metricslam depth-service``) on 127.0.0.1, loads KITTI-size PNG frames
-from a KITTI odometry sequence (``--media pgm``: the same gray pixels as binary PGM, what the SLAM
-service uploads), and drives it with keep-alive ``http.client`` connections, one
+from a KITTI odometry sequence (``--media pgm``: the same gray pixels as binary PGM;
+``--media pgm-input``: as binary PGM resized to the model's input with ``fx`` scaled, what the SLAM
+service uploads for a contract-version-1 model), and drives it with keep-alive ``http.client`` connections, one
 thread per concurrent client (the client is cheap so that most CPU goes to the server; client and
 server still share the machine, which the report says).
 
@@ -32,7 +33,9 @@ from tests.depth_service_process import ServiceProcess
 
 FX_PX = 718.856
 #: --media -> Content-Type of the uploads
-MEDIA_TYPES = {"png": "image/png", "pgm": PGM_MEDIA_TYPE}
+MEDIA_TYPES = {"png": "image/png", "pgm": PGM_MEDIA_TYPE, "pgm-input": PGM_MEDIA_TYPE}
+MEDIA_WORDS = {"png": "the PNG files", "pgm": "binary PGM (`image/x-portable-graymap`)",
+               "pgm-input": "binary PGM resized to the model's input with fx scaled (the SLAM service's uploads)"}
 
 
 @dataclass
@@ -72,7 +75,7 @@ def cpu_seconds(pid: int) -> float:
 
 def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: int,
             latencies: list[float], statuses: dict[int, int], lock: threading.Lock,
-            media_type: str = "image/png") -> None:
+            media_type: str = "image/png", fx_px: float = FX_PX) -> None:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
     headers = {"Content-Type": media_type}
     if binary:
@@ -82,7 +85,7 @@ def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: in
     for i in range(count):
         body = frames[(offset + i) % len(frames)]
         t0 = time.perf_counter()
-        conn.request("POST", f"/v1/disparity?fx={FX_PX}", body=body, headers=headers)
+        conn.request("POST", f"/v1/disparity?fx={fx_px!r}", body=body, headers=headers)
         response = conn.getresponse()
         response.read()
         mine.append((time.perf_counter() - t0) * 1e3)
@@ -95,7 +98,7 @@ def _client(port: int, frames: list[bytes], binary: bool, count: int, offset: in
 
 
 def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total: int,
-              server_pid: int, media_type: str = "image/png") -> RunResult:
+              server_pid: int, media_type: str = "image/png", fx_px: float = FX_PX) -> RunResult:
     """``total`` requests split over ``clients`` concurrent keep-alive connections."""
     per_client = max(1, total // clients)
     latencies: list[float] = []
@@ -103,7 +106,7 @@ def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total:
     lock = threading.Lock()
     threads = [
         threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock,
-                                               media_type))
+                                               media_type, fx_px))
         for k in range(clients)
     ]
     server_cpu0, client_cpu0 = cpu_seconds(server_pid), time.process_time()
@@ -141,9 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     frames = [p.read_bytes() for p in paths]
     import cv2
     shape = cv2.imdecode(np.frombuffer(frames[0], np.uint8), cv2.IMREAD_UNCHANGED).shape
-    if args.media == "pgm":
-        frames = [encode_pgm(cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_GRAYSCALE)) for f in frames]
     media_type = MEDIA_TYPES[args.media]
+    gray = [cv2.imdecode(np.frombuffer(f, np.uint8), cv2.IMREAD_GRAYSCALE) for f in frames]
+    if args.media == "pgm":
+        frames = [encode_pgm(g) for g in gray]
+    fx_px = FX_PX
 
     server_settings: dict[str, object] = {"max_queue": 256, "max_connections": 512}
     if args.threads is not None:
@@ -156,13 +161,18 @@ def main(argv: list[str] | None = None) -> int:
     with ServiceProcess(args.port, settings=server_settings) as service:
         conn = http.client.HTTPConnection("127.0.0.1", args.port, timeout=30)
         conn.request("GET", "/v1/model")
-        server_settings["model"] = json.loads(conn.getresponse().read())["model_id"]
+        contract = json.loads(conn.getresponse().read())
+        server_settings["model"] = contract["model_id"]
         conn.close()
-        run_level(args.port, frames, 2, True, 100, service.pid, media_type)  # warm up (first-call allocations, caches)
+        if args.media == "pgm-input":  # as HttpDepthSource uploads to a version-1 model
+            size = (contract["input_width"], contract["input_height"])
+            frames = [encode_pgm(cv2.resize(g, size, interpolation=cv2.INTER_AREA)) for g in gray]
+            fx_px = FX_PX * size[0] / shape[1]
+        run_level(args.port, frames, 2, True, 100, service.pid, media_type, fx_px)  # warm up (first-call allocations, caches)
         rss_start = rss_mib(service.pid)
         for clients in args.clients:
             for binary in (False, True):
-                r = run_level(args.port, frames, clients, binary, args.requests, service.pid, media_type)
+                r = run_level(args.port, frames, clients, binary, args.requests, service.pid, media_type, fx_px)
                 results.append(r)
                 print(f"{clients:>3} clients {r.form:>4}: {r.rps:7.1f} req/s  p50 {r.pct(50):6.1f} ms  "
                       f"p99 {r.pct(99):6.1f} ms  server CPU {r.server_cpu_s / r.requests * 1e3:.1f} ms/req  "
@@ -175,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             while done < args.soak:
                 r = run_level(args.port, frames, args.soak_clients, done % (2 * step) == 0, step, service.pid,
-                              media_type)
+                              media_type, fx_px)
                 done += r.requests
                 soak_lat.extend(r.latencies_ms)
                 for code, n in r.statuses.items():
@@ -192,13 +202,13 @@ def main(argv: list[str] | None = None) -> int:
 
     command = command_line("bench.depth_service_bench", argv)
     report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after,
-                    media_type)
+                    args.media)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(report)
         print(f"wrote {args.out}")
     if args.json:
-        raw = {"media_type": media_type, "load_average_before": list(load_before),
+        raw = {"media": args.media, "media_type": media_type, "load_average_before": list(load_before),
                "load_average_after": list(load_after), "levels": [{"clients": r.clients, "form": r.form, "requests": r.requests, "rps": r.rps,
                            "p50_ms": r.pct(50), "p90_ms": r.pct(90), "p99_ms": r.pct(99),
                            "server_cpu_ms_per_req": r.server_cpu_s / r.requests * 1e3,
@@ -210,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_frames: int,
            server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple,
-           media_type: str = "image/png") -> str:
+           media: str = "png") -> str:
     lines = [
         "# Depth service benchmark",
         "",
@@ -220,7 +230,8 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
         f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
         "and the numbers are pessimistic); the client runs on the same 2 cores as the server.",
         "",
-        f"Input: {n_frames} real KITTI frames ({shape[1]}x{shape[0]} gray) sent as `{media_type}`, POST /v1/disparity, "
+        f"Input: {n_frames} real KITTI frames ({shape[1]}x{shape[0]} gray) sent as {MEDIA_WORDS[media]}, "
+        "POST /v1/disparity, "
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
         f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items() if k != 'model')} "
         f"(other settings default), serving model `{server_settings.get('model')}`.",

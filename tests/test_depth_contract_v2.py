@@ -211,6 +211,8 @@ def test_slam_depth_sources_pass_the_whole_camera(client, toy, toy_path):
     np.testing.assert_array_equal(OnnxDepthSource(toy_path).inv_depth_map(image, camera), expected)
     source = HttpDepthSource(str(client.base_url), retries=0)
     try:
+        assert source.probe()
         np.testing.assert_array_equal(source.inv_depth_map(image, camera), expected)
+        assert source.upload_size_px is None  # a canonical-camera model warps whole images itself
     finally:
         source.close()

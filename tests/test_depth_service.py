@@ -185,6 +185,28 @@ def test_binary_pgm_is_the_same_picture_as_png(client):
         assert int(pgm.headers["x-image-width-px"]) == 1226
 
 
+def test_slam_client_uploads_v1_keyframes_at_the_network_input_with_the_same_answer(client):
+    """HttpDepthSource resizes a keyframe to a version-1 model's input (INTER_AREA, intrinsics
+    scaled) before uploading it: the answer equals the one for the full image."""
+    from metricslam.camera import PinholeCamera
+    from metricslam_slam.service.http_depth import HttpDepthSource
+
+    camera = PinholeCamera(fx_px=FX_PX, fy_px=FX_PX, cx_px=601.9, cy_px=183.1, width_px=1226, height_px=370)
+    full = np.asarray(_post(client, PNG).json()["inv_depth_per_m"], np.float32)
+    source = HttpDepthSource(str(client.base_url), retries=0)
+    try:
+        np.testing.assert_allclose(source.inv_depth_map(IMG, camera), full, rtol=1e-5)  # before it knows
+        assert source.upload_size_px is None
+        np.testing.assert_allclose(source.inv_depth_map(IMG, camera), full, rtol=1e-5)  # resized
+        assert source.upload_size_px == (512, 256)
+        small = IMG[:200, :400]  # smaller than the input: sent as it is
+        cam_small = camera.model_copy(update={"width_px": 400, "height_px": 200, "cx_px": 199.5, "cy_px": 99.5})
+        as_is = np.asarray(_post(client, _png(small)).json()["inv_depth_per_m"], np.float32)
+        np.testing.assert_allclose(source.inv_depth_map(small, cam_small), as_is, rtol=1e-5)
+    finally:
+        source.close()
+
+
 def test_inverse_depth_scales_with_fx_and_width(client):
     a = _post(client, PNG, fx=FX_PX).json()
     b = _post(client, PNG, fx=2 * FX_PX).json()

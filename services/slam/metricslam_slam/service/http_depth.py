@@ -2,7 +2,12 @@
 
 ``inv_depth_map(image, camera)`` sends the keyframe's gray pixels as a binary PGM (no compression:
 the service copies them instead of inflating a PNG, and this side skips a ~5 ms PNG encode per
-keyframe; a depth service too old to know PGM answers 415 once and gets PNG from then on), ``POST``s it to
+keyframe; a depth service too old to know PGM answers 415 once and gets PNG from then on). For a
+contract-version-1 model (the whole image resized to the network input, learnt from ``GET
+/v1/model`` once per served model) it first resizes the image to that input itself, with the
+service's own ``INTER_AREA`` and the intrinsics scaled to match: the network sees the very same
+input (``d_frac`` bit-identical) while the upload shrinks ~3.5x and the service skips its resize.
+It ``POST``s it to
 ``{url}/v1/disparity?fx=<fx_px>&fy=<fy_px>&cx=<cx_px>&cy=<cy_px>`` (``Accept: application/x-npy``)
 and returns the service's metric inverse depth (h, w) float32 (1/m) for that camera, covering the
 whole image; NaN in cells outside a canonical-camera (contract version 2) model's field of view. Connection failures, timeouts and 5xx/429 are
@@ -27,6 +32,7 @@ import httpx
 import numpy as np
 
 from metricslam.camera import PinholeCamera
+from metricslam.depth.contract import ModelContract
 from metricslam.depth.model import to_gray_u8
 from metricslam.errors import DepthSourceError
 
@@ -63,6 +69,8 @@ class HttpDepthSource:
         self._client = httpx.Client(base_url=self.url, timeout=httpx.Timeout(
             timeout_s, connect=connect_timeout_s))
         self._media = PGM_MEDIA_TYPE
+        self._input_size: tuple[int, int] | None = None  # (w, h) a v1 model resizes every image to
+        self._input_model_id: str | None = None
         self._lock = threading.Lock()
         self._reachable: bool | None = None
         self._last_error: str | None = None
@@ -79,6 +87,12 @@ class HttpDepthSource:
     @property
     def last_error(self) -> str | None:
         return self._last_error
+
+    @property
+    def upload_size_px(self) -> tuple[int, int] | None:
+        """(width, height) larger keyframes are resized to before upload (a version-1 model's
+        input), or None while they go as they are (version 2, or the contract not known yet)."""
+        return self._input_size if self._input_size and self._input_size != (0, 0) else None
 
     def _mark(self, ok: bool, error: str | None = None) -> None:
         with self._lock:
@@ -110,9 +124,10 @@ class HttpDepthSource:
             DepthSourceError: the service could not be reached or answered garbage after retries.
         """
         media = self._media
+        image, camera = self._as_uploaded(image, camera)
         body = encode_pgm(image) if media == PGM_MEDIA_TYPE else encode_png(image)
-        params = {"fx": f"{camera.fx_px:.6f}", "fy": f"{camera.fy_px:.6f}",
-                  "cx": f"{camera.cx_px:.6f}", "cy": f"{camera.cy_px:.6f}"}
+        params = {"fx": f"{camera.fx_px!r}", "fy": f"{camera.fy_px!r}",
+                  "cx": f"{camera.cx_px!r}", "cy": f"{camera.cy_px!r}"}
         headers = {"Content-Type": media, "Accept": "application/x-npy"}
         error = "no attempt"
         down = self._reachable is False
@@ -141,6 +156,8 @@ class HttpDepthSource:
                 raise DepthSourceError(f"depth service rejected the keyframe: HTTP "
                                        f"{response.status_code} {response.text[:200]}")
             inv_depth = _parse(response)
+            if response.headers.get("x-model-id") != self._input_model_id:
+                self._input_size = None  # another model serves now: ask for its contract again
             self.requests_ok += 1
             self._mark(True)
             return inv_depth
@@ -152,6 +169,37 @@ class HttpDepthSource:
 
     def close(self) -> None:
         self._client.close()
+
+    def _as_uploaded(self, image: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, PinholeCamera]:
+        """``image`` resized to a version-1 model's input (intrinsics scaled with it), when the
+        service serves one and the image is larger; else both unchanged (also until the service
+        has answered once: the contract is asked for only from a service known to be up)."""
+        if self._input_size is None and self._reachable:  # never an extra wait on a dead service
+            self._learn_input_size()
+        if not self._input_size or self._input_size == (0, 0):
+            return image, camera
+        width_in, height_in = self._input_size
+        height_px, width_px = image.shape[:2]
+        if width_px <= width_in or height_px <= height_in or (camera.width_px, camera.height_px) != (width_px, height_px):
+            return image, camera
+        small = camera.resized(width_in, height_in)
+        # a principal point on the image's border may land half a pixel off it; a v1 model uses fx only
+        small = small.model_copy(update={"cx_px": min(max(small.cx_px, 0.0), float(width_in)),
+                                         "cy_px": min(max(small.cy_px, 0.0), float(height_in))})
+        return cv2.resize(image, (width_in, height_in), interpolation=cv2.INTER_AREA), small
+
+    def _learn_input_size(self) -> None:
+        """``GET /v1/model``: remember a version-1 model's input size ((0, 0): send full images —
+        a version-2 model warps to its canonical camera itself; None again after a failure)."""
+        try:
+            response = self._client.get("/v1/model", timeout=self._connect_timeout_s + 1.0)
+            contract = ModelContract.model_validate(response.json()) if response.status_code == 200 else None
+        except (httpx.HTTPError, ValueError):
+            return
+        if contract is None:
+            return
+        self._input_model_id = contract.model_id
+        self._input_size = (0, 0) if contract.uses_canonical_camera else (contract.input_width, contract.input_height)
 
 
 def encode_pgm(image: np.ndarray) -> bytes:
