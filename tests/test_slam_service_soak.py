@@ -56,6 +56,65 @@ def test_loop_database_keeps_the_newest_keyframes(synth_sequence) -> None:
     assert detector._order == list(range(25, 30))
 
 
+def _array_bytes(value) -> int:
+    """Bytes of the numpy arrays in ``value`` (dataclass fields, tuples, nested)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, (tuple, list)):
+        return sum(_array_bytes(v) for v in value)
+    if hasattr(value, "__dataclass_fields__"):
+        return sum(_array_bytes(getattr(value, f)) for f in value.__dataclass_fields__)
+    return 0
+
+
+def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
+    """The database's largest per-keyframe item, every indexed keyframe's ~1000 corners, is held
+    in at most 72 bytes a corner (unpacked: 96 — pixels float64 16, descriptor 32, network point
+    24, triangulated point 24 though most corners have none), and unpacks to what verification
+    used (rendered depth as the network's map, the true motion as the VO's)."""
+    from metricslam.datasets import open_sequence
+    from metricslam.geometry import se3
+    from metricslam.slam.loop import LoopDetector
+    from metricslam.slam.loop.corners import CornerFeatures
+
+    seq = open_sequence(synth_sequence(30))
+    detector = LoopDetector(LoopConfig(vocabulary_train_keyframes=3, vocabulary_words=50, keyframe_stride=1))
+    made: dict[int, CornerFeatures] = {}
+    corner_features = detector._corner_features
+
+    def recording(*args, **kwargs) -> CornerFeatures:
+        made[len(made)] = features = corner_features(*args, **kwargs)
+        return features
+
+    detector._corner_features = recording
+    rng = np.random.default_rng(0)
+    prev_T = None
+    for k in range(0, 30, 2):
+        frame = seq[k]
+        inv_depth = np.where(frame.depth_m > 0, 1.0 / np.maximum(frame.depth_m, 1e-6), 0.0).astype(np.float32)
+        uv = rng.uniform([0, 0], [frame.camera.width_px - 1, frame.camera.height_px - 1], (60, 2))
+        xi = 2.0 * inv_depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]  # 0.5 m per VO unit
+        T_prev_k = None if prev_T is None else se3.inverse(prev_T) @ frame.T_world_cam
+        if T_prev_k is not None:
+            T_prev_k[:3, 3] *= 2.0  # in VO units
+        detector.add_and_query(k, frame.image, frame.camera, uv, xi, inv_depth_map=inv_depth, T_prevkf_kf=T_prev_k)
+        prev_T = frame.T_world_cam
+    assert len(detector._corners) == len(made) == 15
+    n_corners = sum(len(f.uv_px) for f in made.values())
+    assert n_corners > 15 * 500
+    assert sum(f.n_with_depth for f in made.values()) > n_corners / 2  # network points for most corners
+    assert any(np.isfinite(f.points_geo).all(axis=1).any() for f in made.values())  # some triangulated
+    stored = sum(_array_bytes(entry) for entry in detector._corners.values())
+    assert stored <= 72 * n_corners, f"{stored / n_corners:.1f} bytes per corner"
+    for kf_id, features in zip(detector._order, made.values()):
+        entry = detector._corners[kf_id]
+        assert entry.n_with_depth == features.n_with_depth
+        back = entry.unpack()
+        for name in ("uv_px", "descriptors", "points", "points_geo"):
+            a, b = getattr(features, name), getattr(back, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+
+
 def test_a_long_session_rolls_over_into_linked_sessions(synth_sequence) -> None:
     """With a small keyframe cap the service closes the session and carries the camera on in a
     new linked one, again and again, without losing poses. (The memory figures of a long soak are

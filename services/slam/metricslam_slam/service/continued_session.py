@@ -12,6 +12,12 @@ seen (not the origin):
 Its segment ids follow the earlier ones (a new segment: consumers can tell the seam). The link
 assumes the camera did not move while no session ran; the new segment has the monocular VO's
 arbitrary scale until learned scale factors establish it again, like any new session.
+
+The earlier poses are final, and a camera keeps them for as long as it runs (each roll-over
+continues them all; ``…/trajectory`` answers them), so they are held as columns
+(:class:`PoseTable`, ~170 bytes a pose instead of ~490 for a :class:`PoseEstimate` object and
+its own array), and ``…/path`` takes their arrays as they are instead of rebuilding them from
+every earlier pose at every keyframe (:meth:`ContinuedSession.path_columns`).
 """
 
 from __future__ import annotations
@@ -22,12 +28,69 @@ import numpy as np
 
 from metricslam.datasets.base import Frame
 from metricslam.errors import ServiceError
-from metricslam.slam.types import PoseEstimate, SlamSession
+from metricslam.slam.types import PoseEstimate, ScaleState, SlamSession
+from metricslam.wire.codec import STATE_CODES, TrajectoryMessage
+
+_SCALE_STATES: tuple[ScaleState, ...] = tuple(ScaleState)
 
 
 def anchor_pose(prior: list[PoseEstimate]) -> PoseEstimate:
     """The pose a continuation starts from: the last earlier pose that is a real one."""
     return next((p for p in reversed(prior) if p.pose_valid), prior[-1])
+
+
+class PoseTable:
+    """Final poses, read-only, as columns: row ``k`` is ``poses[k]`` (:meth:`poses` gives them
+    back as equal :class:`PoseEstimate` objects).
+
+    Memory: ~170 bytes a pose (the (4, 4) float64 ``T_world_cam`` is 128 of them), against ~490
+    for a :class:`PoseEstimate` with its own array; still one row per pose.
+
+    Attributes:
+        frame_index, t_ns, segment_id, scale_factors: (N,) int64.
+        T_world_cam: (N, 4, 4) float64.
+        state_code: (N,) uint8 index into :data:`metricslam.wire.codec.STATE_CODES`.
+        scale_state_code: (N,) uint8 index into :class:`ScaleState`'s members.
+        is_keyframe, scale_established, interpolated, pose_valid: (N,) bool.
+    """
+
+    def __init__(self, poses: list[PoseEstimate]) -> None:
+        n = len(poses)
+
+        def column(field: str, dtype) -> np.ndarray:
+            return np.fromiter((getattr(p, field) for p in poses), dtype=dtype, count=n)
+
+        self.frame_index = column("frame_index", np.int64)
+        self.t_ns = column("t_ns", np.int64)
+        self.T_world_cam = np.array([np.asarray(p.T_world_cam, dtype=np.float64) for p in poses],
+                                    dtype=np.float64).reshape(n, 4, 4)
+        self.state_code = TrajectoryMessage.state_codes([p.state for p in poses])
+        self.is_keyframe = column("is_keyframe", bool)
+        self.segment_id = column("segment_id", np.int64)
+        self.scale_established = column("scale_established", bool)
+        self.interpolated = column("interpolated", bool)
+        self.pose_valid = column("pose_valid", bool)
+        self.scale_state_code = np.fromiter((_SCALE_STATES.index(ScaleState(p.scale_state)) for p in poses),
+                                            dtype=np.uint8, count=n)
+        self.scale_factors = column("scale_factors", np.int64)
+
+    def __len__(self) -> int:
+        return len(self.frame_index)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of array data held."""
+        return sum(a.nbytes for a in vars(self).values() if isinstance(a, np.ndarray))
+
+    def poses(self) -> list[PoseEstimate]:
+        """Every row as a :class:`PoseEstimate` (each with its own ``T_world_cam`` array)."""
+        rows = zip(self.frame_index.tolist(), self.t_ns.tolist(), self.T_world_cam, self.state_code.tolist(),
+                   self.is_keyframe.tolist(), self.segment_id.tolist(), self.scale_established.tolist(),
+                   self.interpolated.tolist(), self.pose_valid.tolist(), self.scale_state_code.tolist(),
+                   self.scale_factors.tolist())
+        return [PoseEstimate(f, t, T.copy(), STATE_CODES[s], is_keyframe=kf, segment_id=seg, scale_established=est,
+                             interpolated=interp, pose_valid=valid, scale_state=_SCALE_STATES[ss], scale_factors=nf)
+                for f, t, T, s, kf, seg, est, interp, valid, ss, nf in rows]
 
 
 class ContinuedSession:
@@ -38,6 +101,7 @@ class ContinuedSession:
         prior: the camera's earlier poses, in order (not empty).
 
     Attributes:
+        prior: the earlier poses (:class:`PoseTable`).
         T_world_origin: (4, 4) maps the inner session's world frame into the earlier one.
         first_segment_id: the inner session's segment 0 is published as this segment id.
     """
@@ -46,10 +110,10 @@ class ContinuedSession:
         if not prior:
             raise ServiceError("a continued session needs earlier poses")
         self.inner = inner
-        self.prior = list(prior)
-        self.anchor = anchor_pose(self.prior)
+        self.prior = PoseTable(prior)
+        self.anchor = anchor_pose(prior)
         self.T_world_origin = np.asarray(self.anchor.T_world_cam, dtype=np.float64).copy()
-        self.first_segment_id = max(p.segment_id for p in self.prior) + 1
+        self.first_segment_id = int(self.prior.segment_id.max()) + 1
 
     def _mapped(self, est: PoseEstimate) -> PoseEstimate:
         return dataclasses.replace(est, T_world_cam=self.T_world_origin @ np.asarray(est.T_world_cam),
@@ -60,7 +124,27 @@ class ContinuedSession:
 
     def trajectory(self) -> list[PoseEstimate]:
         """The earlier poses, then the new session's current best poses (mapped)."""
-        return self.prior + [self._mapped(e) for e in self.inner.trajectory()]
+        return self.prior.poses() + self.current_trajectory()
+
+    def current_trajectory(self) -> list[PoseEstimate]:
+        """The new session's current best poses (mapped), without the earlier ones."""
+        return [self._mapped(e) for e in self.inner.trajectory()]
+
+    def path_columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+        """``(frame_index, t_ns, T_world_cam, state_code, scale_established)`` of the
+        :meth:`trajectory` poses with ``pose_valid`` (the ``…/path`` message's arrays; the
+        flag: that of the last of them), from the earlier poses' stored columns."""
+        p, valid = self.prior, self.prior.pose_valid
+        f0, t0, T0, s0 = p.frame_index[valid], p.t_ns[valid], p.T_world_cam[valid], p.state_code[valid]
+        kept = [e for e in self.current_trajectory() if e.pose_valid]
+        if not kept:
+            return f0, t0, T0, s0, bool(p.scale_established[valid][-1:].any())
+        n = len(kept)
+        return (np.concatenate([f0, np.array([e.frame_index for e in kept], dtype=np.int64)]),
+                np.concatenate([t0, np.array([e.t_ns for e in kept], dtype=np.int64)]),
+                np.concatenate([T0, np.array([e.T_world_cam for e in kept], dtype=np.float64).reshape(n, 4, 4)]),
+                np.concatenate([s0, TrajectoryMessage.state_codes([e.state for e in kept])]),
+                bool(kept[-1].scale_established))
 
     def stats(self) -> dict:
         stats = dict(self.inner.stats())

@@ -7,7 +7,10 @@ Fed by the session's own outputs (after each processed frame) and its back end's
   depth thread, published from there);
 * ``landmarks`` — the local window's depth-known landmarks after every keyframe;
 * ``path`` — the optimized trajectory (frames with a pose) when it changed: after a keyframe, a
-  global solve, an accepted loop or a warp. Building it is O(frames), once per change.
+  global solve, an accepted loop or a warp. Building it is O(frames), once per change; a
+  continued session's earlier poses come as stored arrays
+  (:meth:`~metricslam_slam.service.continued_session.ContinuedSession.path_columns`), so only
+  the current session's frames are gathered pose by pose.
 
 A session without a local VO or back end (the ``identity`` transport session) publishes none.
 """
@@ -86,6 +89,13 @@ class MapPublisher:
             scale_established=est.scale_established, points_world=points.astype(np.float32)))
 
     def _publish_path(self) -> None:
+        path_columns = getattr(self.session, "path_columns", None)  # a continued session
+        if path_columns is not None:
+            frame_index, t_ns, T_world_cam, state_code, scale_established = path_columns()
+            self._publish("path", TrajectoryMessage(
+                camera_id=self.camera_id, scale_established=scale_established, frame_index=frame_index,
+                t_ns=t_ns, T_world_cam=T_world_cam, state_code=state_code))
+            return
         kept = [e for e in self.session.trajectory() if e.pose_valid]
         n = len(kept)
         self._publish("path", TrajectoryMessage(

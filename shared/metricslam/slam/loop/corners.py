@@ -57,6 +57,76 @@ class CornerFeatures:
         return int(np.isfinite(self.points).all(axis=1).sum())
 
 
+#: bytes of one stored row index (:class:`PackedCorners`)
+_ROW_INDEX_BYTES = np.dtype(np.int32).itemsize
+
+
+@dataclass(frozen=True)
+class PackedCorners:
+    """A keyframe's :class:`CornerFeatures` as the place-recognition database holds them, in
+    ~2/3 of the memory and losslessly (:meth:`unpack` gives back equal arrays):
+
+    * pixels as float32 — ORB keypoints are float32, so nothing is rounded (float64 is kept
+      for pixels that are not);
+    * a 3-D point array as its rows that are not all NaN plus their row indices, when that is
+      smaller than the dense array — the triangulated ``points_geo`` has a point for ~7 % of
+      the corners (rendered loop); the network's ``points`` (~90 %) stay dense.
+
+    Rendered loop, ~950 corners a keyframe: 96 -> ~64 bytes per corner (pixels 8, descriptor
+    32, network point 24; triangulated points for 0-7 % of the corners, 0-2), ~61 KiB per
+    database entry (``tests/test_slam_service_soak.py``).
+
+    Attributes:
+        n_corners: N.
+        n_with_depth: :attr:`CornerFeatures.n_with_depth`, without unpacking.
+    """
+
+    n_corners: int
+    n_with_depth: int
+    uv_px: np.ndarray  # (N, 2) float32 (float64 when not exact)
+    descriptors: np.ndarray  # (N, 32) uint8
+    points: tuple[np.ndarray | None, np.ndarray]  # (row indices (K,) int32 or None: dense, rows)
+    points_geo: tuple[np.ndarray | None, np.ndarray] | None
+
+    @classmethod
+    def pack(cls, features: CornerFeatures) -> PackedCorners:
+        uv = np.asarray(features.uv_px)
+        uv32 = uv.astype(np.float32)
+        return cls(len(uv), features.n_with_depth, uv32 if np.array_equal(uv32, uv) else uv,
+                   features.descriptors, _pack_rows(features.points),
+                   None if features.points_geo is None else _pack_rows(features.points_geo))
+
+    def unpack(self) -> CornerFeatures:
+        """The :class:`CornerFeatures` this was packed from (equal arrays, float64 pixels)."""
+        return CornerFeatures(self.uv_px.astype(np.float64), self.descriptors,
+                              _unpack_rows(self.n_corners, *self.points),
+                              None if self.points_geo is None else _unpack_rows(self.n_corners, *self.points_geo))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of array data held."""
+        arrays = [self.uv_px, self.descriptors, *self.points, *(self.points_geo or ())]
+        return sum(a.nbytes for a in arrays if a is not None)
+
+
+def _pack_rows(points: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """``(rows, points[rows])`` for the rows of (N, 3) ``points`` that are not all NaN, when
+    smaller than ``points``; else ``(None, points)``."""
+    keep = ~np.isnan(points).all(axis=1)
+    n_keep = int(keep.sum())
+    if n_keep * (points.shape[1] * points.itemsize + _ROW_INDEX_BYTES) >= points.nbytes:
+        return None, points
+    return np.flatnonzero(keep).astype(np.int32), points[keep]
+
+
+def _unpack_rows(n: int, rows: np.ndarray | None, values: np.ndarray) -> np.ndarray:
+    if rows is None:
+        return values
+    out = np.full((n, values.shape[1]), np.nan, dtype=values.dtype)
+    out[rows] = values
+    return out
+
+
 def detect_corners(orb: cv2.ORB, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """ORB corners of a full-resolution gray image -> (uv_px (N, 2), descriptors (N, 32))."""
     kps, desc = orb.detectAndCompute(gray, None)

@@ -9,7 +9,8 @@ score reaches ``min_score_ratio`` times the score of the query against its immed
 inverse-depth map in scale mode, from triangulation against the previous keyframe without it),
 falling back to the VO-landmark verification (:func:`metricslam.slam.loop.verification.verify`)
 when a keyframe has no corner depth. The database keeps the newest ``max_database_keyframes``
-indexed keyframes; older ones are forgotten (bounded memory on a long drive).
+indexed keyframes; older ones are forgotten (bounded memory on a long drive). Their corners are
+held packed (:class:`~metricslam.slam.loop.corners.PackedCorners`: lossless, ~2/3 of the memory).
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ class LoopDetector:
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
         self._features: dict[int, LandmarkFeatures] = {}
-        self._corners: dict[int, corner_mod.CornerFeatures] = {}
+        self._corners: dict[int, corner_mod.PackedCorners] = {}  # packed: ~2/3 of the memory
         self._orb_corners = cv2.ORB_create(nfeatures=self.config.n_corner_features, nlevels=4,
                                            fastThreshold=12)
         self._prev_corners: tuple[np.ndarray, np.ndarray] | None = None  # last keyframe's (uv, desc)
@@ -112,9 +113,11 @@ class LoopDetector:
         prev, self._prev_corners = self._prev_corners, ((uv_c, desc_c) if uv_c is not None else None)
         if (self._calls - 1) % self.config.keyframe_stride:
             return []
+        new_corners = None
         if corner_mode:
-            self._corners[kf_id] = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
-                                                         landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
+            new_corners = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
+                                                landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
+            self._corners[kf_id] = corner_mod.PackedCorners.pack(new_corners)
         desc = retrieval_descriptors(self._orb, gray, self.config.image_scale)
         extra = None
         if self.config.fast_corners > 0:
@@ -153,9 +156,10 @@ class LoopDetector:
                 break
             old = int(ids[i])
             res = None
-            cn, co = self._corners.get(kf_id), self._corners.get(old)
+            cn = new_corners if kf_id in self._corners else None
+            co = self._corners.get(old)
             if cn is not None and co is not None and min(cn.n_with_depth, co.n_with_depth) >= cfg.min_depth_inliers:
-                res = corner_mod.verify_corners(cn, co, camera, cfg, self._rng)
+                res = corner_mod.verify_corners(cn, co.unpack(), camera, cfg, self._rng)
                 self.n_corner_verified += res is not None
             else:
                 res = verify(self._features[kf_id], self._features[old], camera, cfg, self._rng)
