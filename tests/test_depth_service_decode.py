@@ -6,6 +6,8 @@ No server: :class:`metricslam_depth.pipeline.DepthPipeline` with the shipped mod
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -13,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from metricslam.depth import DepthModel
-from metricslam_depth.imaging import ImageHeader, decode_gray, decode_image, jpeg_reduction
+from metricslam_depth.errors import RequestProblem
+from metricslam_depth.imaging import ImageHeader, decode_gray, decode_image, image_size, jpeg_reduction
 from metricslam_depth.metrics import ServiceMetrics
 from metricslam_depth.pipeline import DepthPipeline, Upload
 
@@ -33,6 +36,20 @@ def _street(width: int, height: int, seed: int = 0) -> np.ndarray:
 
 def _jpeg(image: np.ndarray) -> bytes:
     return cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes()
+
+
+def _png(image: np.ndarray) -> bytes:
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+def _pgm(image: np.ndarray, max_value: int = 255) -> bytes:
+    height, width = image.shape
+    raster = image.astype(">u2" if max_value > 255 else np.uint8).tobytes()
+    return b"P5\n%d %d\n%d\n" % (width, height, max_value) + raster
+
+
+IMG = _street(1226, 370, seed=7)
+PNG = _png(IMG)
 
 
 @pytest.fixture(scope="module")
@@ -96,3 +113,52 @@ def test_an_image_sent_at_the_input_size_gives_the_same_answer(model):
                              fx * INPUT_WH[0] / 1226, "/v1/disparity")
     assert np.array_equal(full.d_frac, cheap.d_frac)
     np.testing.assert_allclose(cheap.inv_depth_per_m, full.inv_depth_per_m, rtol=1e-6)
+
+
+# ----- header sniffing and decoding of every accepted format -----
+
+
+@settings(max_examples=30, deadline=None)
+@given(width=st.integers(2, 700), height=st.integers(2, 300), as_png=st.booleans())
+def test_header_sniffing_reports_the_encoded_size(width, height, as_png):
+    image = np.zeros((height, width), np.uint8)
+    data, media = (_png(image), "image/png") if as_png else (_jpeg(image), "image/jpeg")
+    assert image_size(data, media) == (width, height)
+    assert decode_image(data, media, max_pixels=10**8).shape == (height, width)
+
+
+@settings(max_examples=30, deadline=None)
+@given(width=st.integers(2, 300), height=st.integers(2, 200), max_value=st.sampled_from([1, 100, 255, 256, 1023, 65535]),
+       seed=st.integers(0, 2**16))
+def test_pgm_decodes_to_its_pixels_rescaled_to_8_bit(width, height, max_value, seed):
+    pixels = np.random.default_rng(seed).integers(0, max_value + 1, (height, width))
+    data = _pgm(pixels, max_value)
+    assert image_size(data, "image/x-portable-graymap") == (width, height)
+    image = decode_image(data, "image/x-portable-graymap", max_pixels=10**6)
+    assert image.dtype == np.uint8 and image.shape == (height, width)
+    np.testing.assert_array_equal(image, np.floor(pixels * 255 / max_value + 0.5).astype(np.uint8))
+
+
+@settings(max_examples=60, deadline=None)
+@given(cut=st.floats(0.0, 0.999), as_png=st.booleans())
+def test_truncated_files_raise_400_never_anything_else(cut, as_png):
+    data, media = (PNG, "image/png") if as_png else (_jpeg(IMG), "image/jpeg")
+    truncated = data[: math.floor(len(data) * cut)]
+    with pytest.raises(RequestProblem) as info:
+        decode_image(truncated, media, max_pixels=10**8)
+    assert info.value.status == 400
+
+
+@pytest.mark.parametrize("kind", ["png16", "rgba", "progressive-jpeg", "colour-jpeg"])
+def test_decoder_normalises_to_uint8_gray(kind):
+    rng = np.random.default_rng(1)
+    gray16 = rng.integers(0, 65535, (60, 80), dtype=np.uint16)
+    rgba = rng.integers(0, 255, (60, 80, 4), dtype=np.uint8)
+    data, media = {
+        "png16": (lambda: (_png(gray16), "image/png")),
+        "rgba": (lambda: (_png(rgba), "image/png")),
+        "progressive-jpeg": (lambda: (cv2.imencode(".jpg", rgba[:, :, :3], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes(), "image/jpeg")),
+        "colour-jpeg": (lambda: (_jpeg(rgba[:, :, :3]), "image/jpeg")),
+    }[kind]()
+    image = decode_image(data, media, max_pixels=10**6)
+    assert image.dtype == np.uint8 and image.shape == (60, 80)
