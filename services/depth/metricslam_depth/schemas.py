@@ -18,10 +18,10 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from metricslam.depth.contract import PGM_MEDIA_TYPE
+
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 NPY_MEDIA_TYPE = "application/x-npy"
-#: binary (P5) PGM: gray pixels as they are, the cheapest upload to decode (docs/depth_service.md)
-PGM_MEDIA_TYPE = "image/x-portable-graymap"
 IMAGE_MEDIA_TYPES = ("image/png", "image/jpeg", PGM_MEDIA_TYPE)
 
 # Plausible focal length of the caller's camera, pixels at the uploaded image's resolution; the

@@ -60,6 +60,9 @@ CANONICAL_FIELDS: tuple[str, ...] = ("canonical_fx_px", "canonical_fy_px", "vali
 DEFAULT_VALID_MIN_FRACTION = 0.5
 #: the only output definition this code understands.
 OUTPUT_DEFINITION = "disparity_fraction_of_width"
+#: Content-Type of a binary (P5) PGM upload: gray pixels as they are, the cheapest for the depth
+#: service to read (its fast path; the SLAM service uploads keyframes this way)
+PGM_MEDIA_TYPE = "image/x-portable-graymap"
 #: weight precisions this code runs: the exported float32 graph, or its static int8 quantization.
 WeightsPrecision = Literal["float32", "int8-static"]
 WEIGHTS_PRECISIONS: tuple[str, ...] = get_args(WeightsPrecision)

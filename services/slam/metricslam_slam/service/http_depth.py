@@ -32,12 +32,9 @@ import httpx
 import numpy as np
 
 from metricslam.camera import PinholeCamera
-from metricslam.depth.contract import ModelContract
+from metricslam.depth.contract import PGM_MEDIA_TYPE, ModelContract
 from metricslam.depth.model import to_gray_u8
 from metricslam.errors import DepthSourceError
-
-#: what :func:`encode_pgm` sends (the depth service's ``metricslam_depth.schemas.PGM_MEDIA_TYPE``)
-PGM_MEDIA_TYPE = "image/x-portable-graymap"
 
 log = logging.getLogger(__name__)
 _RETRY_STATUS = {429, 502, 503, 504}
