@@ -48,7 +48,9 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
     recorder.wait_for(lambda r: (s := r.latest_status()) is not None
                       and s.frames_received >= len(frames) and s.queue_depth == 0, 5)
     status = recorder.latest_status()
-    lat = np.array([(recorder.arrival_ns[k] - sent_ns[k]) / 1e6 for k in recorder.poses if k in sent_ns])
+    ks = sorted(k for k in recorder.poses if k in sent_ns)
+    lat = np.array([(recorder.arrival_ns[k] - sent_ns[k]) / 1e6 for k in ks])
+    worst = np.argsort(-lat)[:20] if lat.size else []
     publisher.close()
     recorder.close()
     return {
@@ -59,10 +61,15 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
         "max_ms": float(lat.max()) if lat.size else None,
         "service_fps": status.fps if status else None,
+        # where the tail is: the 20 slowest frames (index, ms) and p99 per 100 frames
+        "slowest_frames": [[int(ks[i]), round(float(lat[i]), 1)] for i in worst],
+        "p99_ms_per_100_frames": [round(float(np.percentile(lat[j:j + 100], 99)), 1)
+                                  for j in range(0, lat.size, 100)],
     }
 
 
 def run_stack(kind: str, frames, rates: list[float], two_cams: bool, log_dir: Path) -> dict:
+    log_dir.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     stack = Stack(endpoint, depth_port=free_port(), use_scale=(kind == "pipeline"), session_kind=kind,
                   log_dir=str(log_dir))
@@ -123,6 +130,11 @@ def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_
             lines.append(f"| {r['rate_hz']:g} | {_fmt(r['achieved_send_hz'])} | {r['poses']}/{r['frames']} | "
                          f"{r['queue_drops']} | {_fmt(r['p50_ms'])} | {_fmt(r['p99_ms'])} | "
                          f"{_fmt(r['max_ms'])} | {_fmt(r['service_fps'])} |")
+        for r in res["sweep"]:
+            if r.get("slowest_frames"):
+                lines += ["", f"{r['rate_hz']:g} Hz, slowest frames (index: ms): "
+                          + ", ".join(f"{k}: {ms:g}" for k, ms in r["slowest_frames"][:10])
+                          + "; p99 per 100 frames: " + ", ".join(f"{x:g}" for x in r["p99_ms_per_100_frames"])]
         ok = [r["rate_hz"] for r in res["sweep"] if not r["queue_drops"] and r["poses"] == r["frames"]]
         lines += ["", f"Highest rate sustained without drops: **{max(ok):g} Hz**" if ok else
                   "No rate sustained without drops.", ""]
@@ -144,15 +156,17 @@ def main() -> int:
     parser.add_argument("--transport-rates", default="10,30,100,200,400", help="identity-session rates (Hz)")
     parser.add_argument("--out", default="bench/results/zenoh.md")
     parser.add_argument("--log-dir", default="/tmp/metricslam-bench-zenoh")
+    parser.add_argument("--stacks", nargs="+", choices=("pipeline", "identity"), default=["pipeline", "identity"],
+                        help="which stacks to run (identity: the transport-only reference)")
+    parser.add_argument("--no-two-cameras", action="store_true", help="skip the two-cameras-at-once trial")
     args = parser.parse_args()
     seq = open_sequence(args.seq)
     n = len(seq) if args.frames is None else min(args.frames, len(seq))
     frames = [seq[i] for i in range(n)]  # decoded up front: time only the transport + SLAM
     Path(args.log_dir).mkdir(parents=True, exist_ok=True)
-    results = [
-        run_stack("pipeline", frames, [float(r) for r in args.rates.split(",")], True, Path(args.log_dir)),
-        run_stack("identity", frames, [float(r) for r in args.transport_rates.split(",")], True, Path(args.log_dir)),
-    ]
+    rates = {"pipeline": args.rates, "identity": args.transport_rates}
+    results = [run_stack(kind, frames, [float(r) for r in rates[kind].split(",")], not args.no_two_cameras,
+                         Path(args.log_dir) / kind) for kind in args.stacks]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(results, indent=2))

@@ -64,8 +64,9 @@ class GlobalBackend:
         self._depth_requests: collections.deque = collections.deque()  # MarginalizedKeyframe
         self._scale_results: collections.deque = collections.deque()  # (kf_id, scales, inv_map)
         self._dropped: list[int] = []  # kf ids whose depth request was dropped, for the estimator
-        self._corr_lock = threading.Lock()  # guards _pending_correction only (never held long)
+        self._corr_lock = threading.Lock()  # guards _pending_correction, _poses_snapshot (never held long)
         self._pending_correction: SolvedPose | None = None
+        self._poses_snapshot: dict[int, np.ndarray] = {}  # last optimized_keyframe_poses() answer
         self._busy = 0
         self._stop = False
         self._counters: collections.Counter = collections.Counter()
@@ -125,8 +126,25 @@ class GlobalBackend:
         return S_new_vo
 
     def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
-        with self._lock:
-            return self.estimator.optimized_keyframe_poses()
+        """The keyframe poses of the newest solve that has finished (frame index -> (4, 4)).
+
+        Never waits for a running one: while the graph worker holds the estimator (loop
+        detection, a batch re-solve after a loop: up to hundreds of ms), the previous answer is
+        returned at once. A live caller on the tracking thread (the SLAM service's ``…/path``
+        after each keyframe) used to wait here and fall seconds behind at every loop. Once the
+        back end is idle (after :meth:`wait_idle` or :meth:`close`, and always inline) the answer
+        is the current one.
+        """
+        if not self._lock.acquire(blocking=False):
+            with self._corr_lock:
+                return dict(self._poses_snapshot)
+        try:
+            poses = self.estimator.optimized_keyframe_poses()
+        finally:
+            self._lock.release()
+        with self._corr_lock:
+            self._poses_snapshot = poses
+        return dict(poses)
 
     @property
     def scale_established(self) -> bool:

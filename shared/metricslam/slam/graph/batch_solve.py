@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import re
+import time
 
 import gtsam
 import numpy as np
@@ -26,10 +27,19 @@ STABILIZER_SIGMAS = np.array([0.1] * 3 + [100.0] * 3 + [1.0])
 
 
 def lm_params(factorization: str) -> gtsam.LevenbergMarquardtParams:
-    """Levenberg-Marquardt parameters with QR or Cholesky elimination (``GraphConfig.factorization``)."""
+    """Levenberg-Marquardt parameters with QR or Cholesky elimination (``GraphConfig.factorization``).
+
+    gtsam's Python calls keep the GIL for their whole run, so a batch solve of a few hundred
+    keyframes after a loop (~40-80 ms) stalled the tracking thread of a live session; the
+    iteration hook lets a waiting thread in between iterations (the solve itself is unchanged)."""
     lm = gtsam.LevenbergMarquardtParams()
     lm.setLinearSolverType("MULTIFRONTAL_QR" if factorization == "QR" else "MULTIFRONTAL_CHOLESKY")
+    lm.iterationHook = _let_other_threads_run
     return lm
+
+
+def _let_other_threads_run(iteration: int, error_before: float, error_after: float) -> None:
+    time.sleep(0)  # releases the GIL: a thread waiting for it takes it now
 
 
 def indeterminate_keyframe(exc: Exception) -> int | None:
