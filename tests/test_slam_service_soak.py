@@ -69,9 +69,10 @@ def _array_bytes(value) -> int:
 
 def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
     """The database's largest per-keyframe item, every indexed keyframe's ~1000 corners, is held
-    in at most 72 bytes a corner (unpacked: 96 — pixels float64 16, descriptor 32, network point
-    24, triangulated point 24 though most corners have none), and unpacks to what verification
-    used (rendered depth as the network's map, the true motion as the VO's)."""
+    in at most 56 bytes a corner (unpacked: 96 — pixels float64 16, descriptor 32, network point
+    24, triangulated point 24 though most corners have none; packed, the network point is its
+    depth, 8), and unpacks bit for bit to what verification used (rendered depth as the network's
+    map, the true motion as the VO's)."""
     from metricslam.datasets import open_sequence
     from metricslam.geometry import se3
     from metricslam.slam.loop import LoopDetector
@@ -105,7 +106,8 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
     assert sum(f.n_with_depth for f in made.values()) > n_corners / 2  # network points for most corners
     assert any(np.isfinite(f.points_geo).all(axis=1).any() for f in made.values())  # some triangulated
     stored = sum(_array_bytes(entry) for entry in detector._corners.values())
-    assert stored <= 72 * n_corners, f"{stored / n_corners:.1f} bytes per corner"
+    assert stored <= 56 * n_corners, f"{stored / n_corners:.1f} bytes per corner"
+    assert all(entry.camera is not None for entry in detector._corners.values())  # network points as depth
     for kf_id, features in zip(detector._order, made.values()):
         entry = detector._corners[kf_id]
         assert entry.n_with_depth == features.n_with_depth

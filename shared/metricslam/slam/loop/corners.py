@@ -64,42 +64,57 @@ _ROW_INDEX_BYTES = np.dtype(np.int32).itemsize
 @dataclass(frozen=True)
 class PackedCorners:
     """A keyframe's :class:`CornerFeatures` as the place-recognition database holds them, in
-    ~2/3 of the memory and losslessly (:meth:`unpack` gives back equal arrays):
+    half the memory and losslessly (:meth:`unpack` gives back equal arrays):
 
     * pixels as float32 — ORB keypoints are float32, so nothing is rounded (float64 is kept
       for pixels that are not);
+    * the network's ``points`` (~90 % of the corners have one) as their depth along z only,
+      when ``camera.unproject(uv, z)`` gives back exactly the stored points (it does: that is
+      how :func:`network_points` made them; checked bit for bit at packing, else kept whole);
     * a 3-D point array as its rows that are not all NaN plus their row indices, when that is
-      smaller than the dense array — the triangulated ``points_geo`` has a point for ~7 % of
-      the corners (rendered loop); the network's ``points`` (~90 %) stay dense.
+      smaller — the triangulated ``points_geo`` has a point for ~7 % of the corners.
 
-    Rendered loop, ~950 corners a keyframe: 96 -> ~64 bytes per corner (pixels 8, descriptor
-    32, network point 24; triangulated points for 0-7 % of the corners, 0-2), ~61 KiB per
+    Rendered loop, ~950 corners a keyframe: 96 -> ~48 bytes per corner (pixels 8, descriptor
+    32, network depth 8; triangulated points for 0-7 % of the corners, 0-2), ~45 KiB per
     database entry (``tests/test_slam_service_soak.py``).
 
     Attributes:
         n_corners: N.
         n_with_depth: :attr:`CornerFeatures.n_with_depth`, without unpacking.
+        camera: the keyframe's intrinsics, when ``points`` is held as depth (else None).
     """
 
     n_corners: int
     n_with_depth: int
     uv_px: np.ndarray  # (N, 2) float32 (float64 when not exact)
     descriptors: np.ndarray  # (N, 32) uint8
-    points: tuple[np.ndarray | None, np.ndarray]  # (row indices (K,) int32 or None: dense, rows)
+    # (row indices (K,) int32 or None: every row, rows (K, 3) points or (K,) depth when ``camera``)
+    points: tuple[np.ndarray | None, np.ndarray]
     points_geo: tuple[np.ndarray | None, np.ndarray] | None
+    camera: PinholeCamera | None = None
 
     @classmethod
-    def pack(cls, features: CornerFeatures) -> PackedCorners:
+    def pack(cls, features: CornerFeatures, camera: PinholeCamera | None = None) -> PackedCorners:
+        """Pack ``features``; with ``camera``, network points that are ``camera.unproject(uv,
+        z)`` are held as ``z``."""
         uv = np.asarray(features.uv_px)
         uv32 = uv.astype(np.float32)
+        points = _pack_rows(features.points)
+        as_depth = camera is not None and _is_unprojection(points, uv, camera)
+        if as_depth:
+            points = (points[0], np.ascontiguousarray(points[1][:, 2]))
         return cls(len(uv), features.n_with_depth, uv32 if np.array_equal(uv32, uv) else uv,
-                   features.descriptors, _pack_rows(features.points),
-                   None if features.points_geo is None else _pack_rows(features.points_geo))
+                   features.descriptors, points,
+                   None if features.points_geo is None else _pack_rows(features.points_geo),
+                   camera if as_depth else None)
 
     def unpack(self) -> CornerFeatures:
         """The :class:`CornerFeatures` this was packed from (equal arrays, float64 pixels)."""
-        return CornerFeatures(self.uv_px.astype(np.float64), self.descriptors,
-                              _unpack_rows(self.n_corners, *self.points),
+        uv = self.uv_px.astype(np.float64)
+        rows, values = self.points
+        if self.camera is not None:
+            values = self.camera.unproject(uv if rows is None else uv[rows], values)
+        return CornerFeatures(uv, self.descriptors, _unpack_rows(self.n_corners, rows, values),
                               None if self.points_geo is None else _unpack_rows(self.n_corners, *self.points_geo))
 
     @property
@@ -107,6 +122,18 @@ class PackedCorners:
         """Bytes of array data held."""
         arrays = [self.uv_px, self.descriptors, *self.points, *(self.points_geo or ())]
         return sum(a.nbytes for a in arrays if a is not None)
+
+
+def _is_unprojection(points: tuple[np.ndarray | None, np.ndarray], uv_px: np.ndarray,
+                     camera: PinholeCamera) -> bool:
+    """Whether packed 3-D rows are exactly ``camera.unproject`` of their pixels and z (NaN rows
+    included: a NaN z gives a NaN row)."""
+    rows, values = points
+    uv = np.asarray(uv_px, dtype=np.float64)
+    uv = uv if rows is None else uv[rows]
+    if values.ndim != 2 or values.shape[1] != 3 or len(values) != len(uv):
+        return False
+    return bool(np.array_equal(camera.unproject(uv, values[:, 2]), values, equal_nan=True))
 
 
 def _pack_rows(points: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:

@@ -10,7 +10,7 @@ inverse-depth map in scale mode, from triangulation against the previous keyfram
 falling back to the VO-landmark verification (:func:`metricslam.slam.loop.verification.verify`)
 when a keyframe has no corner depth. The database keeps the newest ``max_database_keyframes``
 indexed keyframes; older ones are forgotten (bounded memory on a long drive). Their corners are
-held packed (:class:`~metricslam.slam.loop.corners.PackedCorners`: lossless, ~2/3 of the memory).
+held packed (:class:`~metricslam.slam.loop.corners.PackedCorners`: lossless, half the memory).
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class LoopDetector:
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
         self._features: dict[int, LandmarkFeatures] = {}
-        self._corners: dict[int, corner_mod.PackedCorners] = {}  # packed: ~2/3 of the memory
+        self._corners: dict[int, corner_mod.PackedCorners] = {}  # packed: half the memory
         self._orb_corners = cv2.ORB_create(nfeatures=self.config.n_corner_features, nlevels=4,
                                            fastThreshold=12)
         self._prev_corners: tuple[np.ndarray, np.ndarray] | None = None  # last keyframe's (uv, desc)
@@ -117,7 +117,7 @@ class LoopDetector:
         if corner_mode:
             new_corners = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
                                                 landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
-            self._corners[kf_id] = corner_mod.PackedCorners.pack(new_corners)
+            self._corners[kf_id] = corner_mod.PackedCorners.pack(new_corners, camera)
         desc = retrieval_descriptors(self._orb, gray, self.config.image_scale)
         extra = None
         if self.config.fast_corners > 0:
