@@ -9,6 +9,7 @@ import gc
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from metricslam.slam.types import PoseEstimate, ScaleState, TrackingState
 from metricslam.wire.codec import TrajectoryMessage
@@ -106,3 +107,39 @@ def test_map_publisher_path_of_a_continued_session() -> None:
     assert np.array_equal(msg.t_ns, [e.t_ns for e in kept])
     assert np.array_equal(msg.T_world_cam, np.array([e.T_world_cam for e in kept]))
     assert msg.states == [e.state for e in kept]
+
+
+def _moving(first: int, n: int, v_m_per_frame: float, dt_s: float = 0.1) -> list[PoseEstimate]:
+    out = []
+    for i in range(first, first + n):
+        T = np.eye(4)
+        T[0, 3] = v_m_per_frame * i
+        out.append(PoseEstimate(i, round(i * dt_s * 1e9), T, TrackingState.TRACKING))
+    return out
+
+
+def _first_new_x(prior: list[PoseEstimate], t_first_ns: int) -> float:
+    from metricslam.datasets.base import Frame
+
+    class _AtOrigin(_Session):
+        def process(self, frame):
+            return PoseEstimate(frame.index, frame.t_ns, np.eye(4), TrackingState.TRACKING)
+
+    session = ContinuedSession(_AtOrigin(0, 0, 0), prior)
+    est = session.process(Frame(index=prior[-1].frame_index + 1, t_ns=t_first_ns, image=np.zeros((4, 4), np.uint8),
+                                camera=None))
+    return float(est.T_world_cam[0, 3])
+
+
+def test_the_seam_is_bridged_at_the_last_velocity_over_a_short_gap_only() -> None:
+    """A camera moving 1 m a frame (10 m/s) whose session is replaced: after a 2 s gap (a
+    supervised restart) the new segment starts 20 m on; after a gap longer than
+    MAX_EXTRAPOLATION_S, or for a camera that stood still, where it was last seen."""
+    from metricslam_slam.service.continued_session import MAX_EXTRAPOLATION_S
+
+    prior = _moving(0, 50, 1.0)  # last pose x = 49 m at t = 4.9 s
+    assert _first_new_x(prior, prior[-1].t_ns + 100_000_000) == pytest.approx(50.0)  # roll-over: next frame
+    assert _first_new_x(prior, prior[-1].t_ns + 2_000_000_000) == pytest.approx(69.0)
+    assert _first_new_x(prior, prior[-1].t_ns + int((MAX_EXTRAPOLATION_S + 1) * 1e9)) == pytest.approx(49.0)
+    assert _first_new_x(_moving(0, 50, 0.0), prior[-1].t_ns + 2_000_000_000) == pytest.approx(0.0)
+    assert _first_new_x(prior[:1], prior[0].t_ns + 2_000_000_000) == pytest.approx(0.0)  # no velocity known

@@ -4,14 +4,20 @@ Used when a camera's session is replaced while the camera goes on: the service r
 from the state directory), the camera came back after an idle close, or the session reached
 ``max_session_keyframes`` (:mod:`metricslam_slam.service.cameras`). The earlier poses (``prior``)
 are kept as they are; the new session starts at its own origin, and its poses are mapped into the
-earlier world frame by the last earlier pose, so its first pose is where the camera was last
-seen (not the origin):
+earlier world frame by the last earlier pose, moved on by the camera's last velocity over the gap,
+so its first pose is where the camera should be now (not the origin):
 
-    T_world_cam = T_world_origin · T_origin_cam      (T_world_origin: last prior pose)
+    T_world_cam = T_world_origin · T_origin_cam
+    T_world_origin = last prior pose, its position + v · (t_first_new − t_last_prior)
 
-Its segment ids follow the earlier ones (a new segment: consumers can tell the seam). The link
-assumes the camera did not move while no session ran; the new segment has the monocular VO's
-arbitrary scale until learned scale factors establish it again, like any new session.
+``v`` (world units per second) is the mean velocity over the last :data:`VELOCITY_WINDOW_S` of
+earlier poses; over a gap longer than :data:`MAX_EXTRAPOLATION_S` (or without two earlier poses
+to measure ``v``) the camera is taken to have stayed where it was last seen. A moving camera
+restarted after ~2–3 s (``kill -9`` and a restart by ``metricslam up``) otherwise lands tens of
+metres behind itself (a car at 10 m/s). The orientation is the last one (turn rates are not
+extrapolated). Its segment ids follow the earlier ones (a new segment: consumers can tell the
+seam); the new segment has the monocular VO's arbitrary scale until learned scale factors
+establish it again, like any new session.
 
 The earlier poses are final, and a camera keeps them for as long as it runs (each roll-over
 continues them all; ``…/trajectory`` answers them), so they are held as columns
@@ -32,11 +38,31 @@ from metricslam.slam.types import PoseEstimate, ScaleState, SlamSession
 from metricslam.wire.codec import STATE_CODES, TrajectoryMessage
 
 _SCALE_STATES: tuple[ScaleState, ...] = tuple(ScaleState)
+#: longest gap (s) between the last earlier pose and the first new frame that is bridged at the
+#: camera's last velocity (a supervised restart takes ~2-3 s; an idle close is 120 s)
+MAX_EXTRAPOLATION_S = 5.0
+#: the camera's last velocity is its mean over this much of its last earlier poses (s)
+VELOCITY_WINDOW_S = 1.0
 
 
 def anchor_pose(prior: list[PoseEstimate]) -> PoseEstimate:
     """The pose a continuation starts from: the last earlier pose that is a real one."""
     return next((p for p in reversed(prior) if p.pose_valid), prior[-1])
+
+
+def last_velocity(prior: list[PoseEstimate], window_s: float = VELOCITY_WINDOW_S) -> np.ndarray | None:
+    """Mean velocity (3,) world units/s of the camera over the last ``window_s`` of its real
+    (``pose_valid``) poses, or None without two of them at least 50 ms apart in that window."""
+    valid = [p for p in prior if p.pose_valid]
+    if len(valid) < 2:
+        return None
+    last = valid[-1]
+    first = next((p for p in valid if last.t_ns - p.t_ns <= window_s * 1e9), last)
+    dt_s = (last.t_ns - first.t_ns) / 1e9
+    if dt_s < 0.05:
+        return None
+    v = (np.asarray(last.T_world_cam, float)[:3, 3] - np.asarray(first.T_world_cam, float)[:3, 3]) / dt_s
+    return v if np.isfinite(v).all() else None
 
 
 class PoseTable:
@@ -114,13 +140,28 @@ class ContinuedSession:
         self.anchor = anchor_pose(prior)
         self.T_world_origin = np.asarray(self.anchor.T_world_cam, dtype=np.float64).copy()
         self.first_segment_id = int(self.prior.segment_id.max()) + 1
+        self._velocity = last_velocity(prior)
+        self.extrapolated_m = 0.0  # how far the origin was moved on over the gap (world units)
+        self._linked = False
 
     def _mapped(self, est: PoseEstimate) -> PoseEstimate:
         return dataclasses.replace(est, T_world_cam=self.T_world_origin @ np.asarray(est.T_world_cam),
                                    segment_id=est.segment_id + self.first_segment_id)
 
     def process(self, frame: Frame) -> PoseEstimate:
+        if not self._linked:
+            self._link(frame.t_ns)
         return self._mapped(self.inner.process(frame))
+
+    def _link(self, t_first_ns: int) -> None:
+        """Move the origin on by the camera's last velocity over the gap to the first new frame."""
+        self._linked = True
+        gap_s = (int(t_first_ns) - self.anchor.t_ns) / 1e9
+        if self._velocity is None or not 0.0 < gap_s <= MAX_EXTRAPOLATION_S:
+            return
+        step = self._velocity * gap_s
+        self.T_world_origin[:3, 3] += step
+        self.extrapolated_m = float(np.linalg.norm(step))
 
     def trajectory(self) -> list[PoseEstimate]:
         """The earlier poses, then the new session's current best poses (mapped)."""
@@ -149,7 +190,8 @@ class ContinuedSession:
     def stats(self) -> dict:
         stats = dict(self.inner.stats())
         stats["continued"] = {"prior_poses": len(self.prior), "first_segment_id": self.first_segment_id,
-                              "anchor_frame_index": self.anchor.frame_index}
+                              "anchor_frame_index": self.anchor.frame_index,
+                              "extrapolated_m": self.extrapolated_m}
         return stats
 
     def close(self) -> None:
