@@ -123,6 +123,10 @@ def test_depth_probes_hpa_and_cited_measurements(docs: list[dict], k8s_dir: Path
     for level in json_levels:
         assert f"{level['server_cpu_ms_per_req']:.2f}" in text
     assert f"{bench['soak']['rss_before_mib']:.0f}" in text
+    pgm = json.loads((repo_root / "bench" / "results" / "depth_service_pgm_input.json").read_text())
+    assert "bench/results/depth_service_pgm_input.json" in text
+    for level in (lv for lv in pgm["levels"] if lv["form"] == "json"):
+        assert f"{level['server_cpu_ms_per_req']:.2f}" in text
 
 
 def test_slam_state_volume_and_environment(docs: list[dict], monkeypatch) -> None:
