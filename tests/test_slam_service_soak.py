@@ -141,3 +141,18 @@ def test_a_long_session_rolls_over_into_linked_sessions(synth_sequence) -> None:
         router.close()
     assert result["poses"] == 200 and result["tracking"] > 0.9
     assert sum(e == "session_rolled_over" for e, _ in result["events"]) >= 2, result["events"]
+
+
+def test_the_service_caps_glibc_malloc_arenas_unless_told_not_to() -> None:
+    """``SLAM_MALLOC_ARENAS`` (default 2) reaches ``mallopt(M_ARENA_MAX)``; 0 leaves glibc alone."""
+    import ctypes.util
+
+    from metricslam_slam.service.memory import limit_malloc_arenas
+    from metricslam_slam.service.settings import SlamServiceSettings
+
+    assert SlamServiceSettings().malloc_arenas == 2
+    assert SlamServiceSettings(malloc_arenas=0).malloc_arenas == 0
+    assert limit_malloc_arenas(0) is False
+    if not (ctypes.util.find_library("c") or "").startswith("libc.so"):
+        pytest.skip("not glibc: there is no arena cap to set")
+    assert limit_malloc_arenas(8) is True  # this test process: glibc's own default count per core is larger

@@ -98,7 +98,11 @@ def run(args: argparse.Namespace) -> int:
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
     config = config_from_args(args)  # before any network: a bad file fails fast
-    service = SlamService(SlamServiceSettings(**overrides), config=config)
+    settings = SlamServiceSettings(**overrides)
+    from metricslam_slam.service.memory import limit_malloc_arenas
+
+    limit_malloc_arenas(settings.malloc_arenas)  # before the service's threads start
+    service = SlamService(settings, config=config)
     # the handler only appends to a list: setting the service's Event from a handler can deadlock
     # on the lock its wait() holds; and the wait is polled, because a signal that lands on a
     # zenoh thread runs its Python handler only when the main thread wakes up

@@ -7,6 +7,11 @@ many long-lived objects, and measured closed sessions piled up (6 alive at once,
 before one ran. Then glibc keeps freed memory in its arenas. So after a session closes (idle
 close, roll-over) the service collects and trims once: RSS levels off
 (``bench/results/slam_service_soak.md``).
+
+glibc also gives each thread that allocates its own arena (up to 8 per core): a service with a
+worker, graph and depth thread per camera plus zenoh's threads spreads a session's many small
+arrays over them and the free space in each stays held — the soak's RSS floor rose across
+roll-overs with malloc's in-use bytes flat. :func:`limit_malloc_arenas` caps them at start.
 """
 
 from __future__ import annotations
@@ -28,6 +33,21 @@ def _malloc_trim():
 
 
 _TRIM = _malloc_trim()
+_M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
+
+
+def limit_malloc_arenas(n_arenas: int) -> bool:
+    """Cap glibc's malloc arenas at ``n_arenas`` (``mallopt(M_ARENA_MAX)``, what the
+    ``MALLOC_ARENA_MAX`` variable sets); 0 leaves glibc's default. Call it before the threads
+    start. Returns whether a cap was set (False: 0, or not glibc)."""
+    if n_arenas <= 0:
+        return False
+    name = ctypes.util.find_library("c")
+    try:
+        mallopt = ctypes.CDLL(name).mallopt if name else None
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt is not None and mallopt(_M_ARENA_MAX, int(n_arenas)) == 1)
 
 
 def release_memory() -> None:

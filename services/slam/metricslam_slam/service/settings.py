@@ -62,6 +62,10 @@ class SlamServiceSettings(BaseSettings):
             camera continues in a new linked session (``session_rolled_over``): bounds a
             camera's memory (the global graph and place-recognition database grow with
             keyframes); None: never.
+        malloc_arenas: glibc malloc arenas of the service process (``mallopt(M_ARENA_MAX)``,
+            :mod:`metricslam_slam.service.memory`); 0: glibc's default (8 per core). 2: the
+            soak's RSS floor stops rising across roll-overs
+            (``bench/results/slam_service_soak_10000.md``).
         state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a
             restarted service continues a known camera from its last pose
             (``session_restarted``). None: nothing survives a restart.
@@ -91,6 +95,7 @@ class SlamServiceSettings(BaseSettings):
     closed_trajectory_ttl_s: float = Field(default=3600.0, ge=0)
     max_closed_trajectories: int = Field(default=32, ge=0)
     max_session_keyframes: int | None = Field(default=1000, ge=10)
+    malloc_arenas: int = Field(default=2, ge=0)
     state_dir: Path | None = None
 
 
