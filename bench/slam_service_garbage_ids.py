@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                "machine_after": describe(), "results": results}
     rows = ["| camera cap | OS threads before / peak / after | RSS MiB before / peak / after | all closed after s "
             "| malformed / refused frames | cameras closed |", "| --- | --- | --- | --- | --- | --- |"]
-    for name, r in results.items():
+    for r in results.values():
         rows.append(f"| {r['max_cameras']} | {r['before']['threads']} / {r['peak']['threads']} / {r['after']['threads']} | "
                     f"{r['before']['rss_mib']} / {r['peak']['rss_mib']} / {r['after']['rss_mib']} | "
                     f"{r['all_closed_after_s']} | {r['malformed_frames']} / {r['refused_frames']} | {r['cameras_closed']} |")
