@@ -12,7 +12,8 @@ the router and the camera. Its RSS is sampled every 50 frames (``/proc/<pid>/sta
 * ``small bounds``: ``SLAM_MAX_SESSION_KEYFRAMES=100`` and a 30-keyframe loop database, so the
   bounds are reached several times within the run and RSS must level off;
 * ``glibc arenas``: the defaults with glibc's own malloc arena count (``SLAM_MALLOC_ARENAS=0``;
-  the service caps them at 2 by default), the comparison for that setting.
+  the service caps them at 2 by default), the comparison for that setting;
+* ``500-keyframe sessions``: the defaults with half the session cap (``SLAM_MAX_SESSION_KEYFRAMES=500``).
 
 The number to gate on is the peak above warm-up (``rss_mib_max - rss_mib_at_warmup``): a session
 grows until it rolls over, so RSS is a saw-tooth and a slope fitted to it says little.
@@ -44,6 +45,7 @@ CONFIGS = {
     "defaults": {},
     "small bounds": {"SLAM_MAX_SESSION_KEYFRAMES": "100", "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "30"},
     "glibc arenas": {"SLAM_MALLOC_ARENAS": "0"},
+    "500-keyframe sessions": {"SLAM_MAX_SESSION_KEYFRAMES": "500"},
 }
 
 
