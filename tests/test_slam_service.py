@@ -182,3 +182,25 @@ def test_cameras_partitioned_across_workers(stack) -> None:
         assert sorted(rec.poses) == list(range(5))
     assert svc_a.health()["cameras"] == ["fleet-a-1"] and svc_b.health()["cameras"] == ["fleet-b-1"]
     assert len(query_trajectory(client, "fleet-b-1").frame_index) == 5
+
+
+def test_settled_trajectory_waits_until_the_answers_agree() -> None:
+    """``poses --trajectory`` asks until three answers agree: the last keyframes' solve lands
+    after the last pose. A service that keeps changing is given up on at the timeout."""
+    from metricslam.wire.codec import TrajectoryMessage
+    from metricslam_slam.tools.client import settled_trajectory
+
+    def message(x: float) -> TrajectoryMessage:
+        T = np.tile(np.eye(4), (2, 1, 1))
+        T[1, 0, 3] = x
+        return TrajectoryMessage(camera_id="cam0", scale_established=True, frame_index=np.arange(2),
+                                 t_ns=np.arange(2) * 100_000_000, T_world_cam=T,
+                                 state_code=np.zeros(2, dtype=np.uint8))
+
+    answers = iter([1.0, 1.5, 2.0, 2.0, 2.0, 9.0])
+    got = settled_trajectory(lambda: message(next(answers)), period_s=0.01)
+    assert got.T_world_cam[1, 0, 3] == 2.0
+    changing = iter(range(10_000))
+    t0 = time.monotonic()
+    got = settled_trajectory(lambda: message(float(next(changing))), timeout_s=0.2, period_s=0.01)
+    assert time.monotonic() - t0 < 1.0 and got.T_world_cam[1, 0, 3] > 5

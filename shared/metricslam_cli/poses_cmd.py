@@ -39,7 +39,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="also record unscaled poses (the VO's arbitrary units); by default they are "
                         "skipped and counted (KITTI: a placeholder line each, TUM: left out)")
     p.add_argument("--trajectory", action="store_true",
-                   help="write the optimized trajectory (queried at the end) instead of live poses")
+                   help="write the optimized trajectory instead of live poses (asked at the end, once "
+                        "three answers 0.5 s apart agree, at most 10 s)")
     p.add_argument("--mcap", metavar="OUT.mcap",
                    help="also write an MCAP recording for Foxglove (ros extra): poses, path updates, "
                         "keyframe images (if the service sends them), depth maps, landmarks "
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
     import time
 
-    from metricslam_slam.tools.client import PoseRecorder, query_trajectory
+    from metricslam_slam.tools.client import PoseRecorder, query_trajectory, settled_trajectory
     from metricslam_slam.tools.recording import missing_error, missing_frames, unscaled_frames, write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
@@ -65,7 +66,9 @@ def run(args: argparse.Namespace) -> int:
         if args.mcap:  # the last keyframe's landmarks, depth and path follow its pose
             time.sleep(1.0)
         recorder.close()
-        trajectory = query_trajectory(session, args.camera_id) if args.trajectory else None
+        trajectory = None
+        if args.trajectory:  # after the last pose its keyframe's depth and solve may still run
+            trajectory = settled_trajectory(lambda: query_trajectory(session, args.camera_id))
     finally:
         session.close()
     if args.mcap:  # before the pose file, which fails when frames are missing

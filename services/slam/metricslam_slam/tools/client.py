@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from typing import Callable
 
 import numpy as np
 import zenoh
@@ -151,6 +152,28 @@ def query_trajectory(session: zenoh.Session, camera_id: str, timeout_s: float = 
             return decode_as(reply.ok.payload.to_bytes(), TrajectoryMessage)
         errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
     raise ServiceError(f"no trajectory for camera {camera_id!r}: {'; '.join(errors) or 'no SLAM service answered'}")
+
+
+def settled_trajectory(query: Callable[[], TrajectoryMessage], timeout_s: float = 10.0,
+                       period_s: float = 0.5, agreeing: int = 3) -> TrajectoryMessage:
+    """The optimized trajectory once ``agreeing`` answers ``period_s`` apart are the same (the
+    last keyframes' depth answers, loops and solves land after the last pose), or the latest
+    answer after ``timeout_s``.
+
+    Args:
+        query: one ask, e.g. ``lambda: query_trajectory(session, "cam0")``.
+    """
+    last = query()
+    same = 1
+    deadline = time.monotonic() + timeout_s
+    while same < agreeing and time.monotonic() < deadline:
+        time.sleep(period_s)
+        now = query()
+        unchanged = (np.array_equal(now.frame_index, last.frame_index)
+                     and np.array_equal(now.T_world_cam, last.T_world_cam))
+        same = same + 1 if unchanged else 1
+        last = now
+    return last
 
 
 def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> dict | None:
