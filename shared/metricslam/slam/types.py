@@ -153,7 +153,8 @@ class Backend(KeyframeConsumer, Protocol):
 
     def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
         """``frame_index -> S_world_kf`` (4, 4 Sim(3); its scale maps VO units of that keyframe
-        to metres) for every keyframe in the global graph, after the latest solve."""
+        to metres) for every keyframe in the global graph, after the latest finished solve (a
+        threaded back end does not wait for a running one; idle, it is the current one)."""
         ...
 
     @property
