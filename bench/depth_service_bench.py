@@ -131,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--soak-clients", type=int, default=4)
     parser.add_argument("--threads", type=int, default=None, help="DEPTH_THREADS for the server")
     parser.add_argument("--max-concurrency", type=int, default=None, help="DEPTH_MAX_CONCURRENCY")
+    parser.add_argument("--batch-window-ms", type=float, default=None, help="DEPTH_BATCH_WINDOW_MS (micro-batching)")
     parser.add_argument("--media", choices=sorted(MEDIA_TYPES), default="png",
                         help="upload the frames as PNG files (as read) or as binary PGM of the same pixels")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
@@ -155,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         server_settings["threads"] = args.threads
     if args.max_concurrency is not None:
         server_settings["max_concurrency"] = args.max_concurrency
+    if args.batch_window_ms is not None:
+        server_settings["batch_window_ms"] = args.batch_window_ms
     load_before = os.getloadavg()
     results: list[RunResult] = []
     soak: dict[str, object] = {}

@@ -73,7 +73,8 @@ def _load_model(state: ServiceState) -> None:
         c.model_id, c.weights_precision, s.model_path or DEFAULT_MODEL_PATH, c.input_width, c.input_height,
         c.output_width, c.output_height, c.baseline_m, c.params, c.training_commit,
     )
-    state.pipeline = DepthPipeline(model, s.max_image_pixels, s.max_decoded_bytes, state.metrics)
+    state.pipeline = DepthPipeline(model, s.max_image_pixels, s.max_decoded_bytes, state.metrics,
+                                   batch_window_s=s.batch_window_ms / 1e3, max_batch_images=s.max_batch)
     state.metrics.model_loaded.set(1)
 
 

@@ -28,6 +28,7 @@ from metricslam.depth import DepthModel
 from metricslam.disparity import inv_depth_from_width_fraction
 from metricslam.errors import ImageError
 
+from .batcher import MicroBatcher
 from .errors import RequestProblem
 from .imaging import decode_gray, read_header
 from .intrinsics import CameraQuery, decoded_camera
@@ -77,12 +78,16 @@ class DepthPipeline:
     """
 
     def __init__(
-        self, model: DepthModel, max_pixels: int, max_decoded_bytes: int, metrics: ServiceMetrics
+        self, model: DepthModel, max_pixels: int, max_decoded_bytes: int, metrics: ServiceMetrics,
+        batch_window_s: float = 0.0, max_batch_images: int = 8,
     ) -> None:
         self.model = model
         self.max_pixels = max_pixels
         self.max_decoded_bytes = max_decoded_bytes
         self.metrics = metrics
+        #: shares network runs between concurrent requests (``DEPTH_BATCH_WINDOW_MS``), or None
+        self.batcher = (MicroBatcher(model.predict_d_frac, batch_window_s, max_batch_images)
+                        if batch_window_s > 0 else None)
 
     def _min_decode_size(self, upload: Upload, query: CameraQuery) -> tuple[int, int]:
         """(width, height) the decoded image must keep (the JPEG reduction may not go below)."""
@@ -136,7 +141,10 @@ class DepthPipeline:
             self.metrics.decode.observe(time.perf_counter() - t0)
         t0 = time.perf_counter()
         try:
-            d_frac = self.model.predict_d_frac(images, cameras or None)
+            if self.batcher is not None:
+                d_frac = self.batcher.predict(images, cameras or None)
+            else:
+                d_frac = self.model.predict_d_frac(images, cameras or None)
         except ImageError as exc:  # our own message about the image (shape, dtype), no internals
             raise RequestProblem(400, "unusable-image", "Image not usable", str(exc)) from exc
         infer_s = time.perf_counter() - t0

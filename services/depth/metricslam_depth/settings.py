@@ -63,6 +63,11 @@ class DepthServiceSettings(BaseSettings):
         "image part of a batch (enforced while streaming)"
     )
     max_batch: int = Field(8, ge=1, le=256, description="most images per batch request")
+    batch_window_ms: float = Field(
+        0.0, ge=0, le=100, description="micro-batching: a request waits this long for concurrent "
+        "requests and runs the network once for all their images (metricslam_depth.batcher); "
+        "0 = off (measured slower on 2 cores: bench/results/depth_service_batching.md)"
+    )
     max_image_pixels: int = Field(
         4096 * 4096, ge=64, description="largest decoded image (width*height) accepted"
     )
