@@ -62,3 +62,39 @@ def test_a_failed_run_fails_each_request_in_it() -> None:
         batcher.predict([np.zeros((4, 4), np.uint8)], None)
     with pytest.raises(ValueError):  # and the next request is not stuck behind it
         batcher.predict([np.zeros((4, 4), np.uint8)], None)
+
+
+def test_the_service_with_a_batch_window_answers_as_without() -> None:
+    """Real services (uvicorn on loopback): two concurrent requests to one with
+    ``DEPTH_BATCH_WINDOW_MS`` (the setting reaches the pipeline; sharing a run is the tests above)
+    get the same answers as from a service without it."""
+    import cv2
+    import httpx
+
+    from tests.depth_service_process import ServiceProcess
+
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (188, 620), dtype=np.uint8), (7, 7), 2)
+    ok, png = cv2.imencode(".png", image)
+    body = png.tobytes()
+
+    def ask(port: int) -> np.ndarray:
+        r = httpx.post(f"http://127.0.0.1:{port}/v1/disparity", content=body, params={"fx": 360.0},
+                       headers={"Content-Type": "image/png"}, timeout=30)
+        assert r.status_code == 200, r.text
+        return np.asarray(r.json()["inv_depth_per_m"], dtype=np.float32)
+
+    with ServiceProcess(18120) as plain:
+        expected = ask(plain.port)
+    with ServiceProcess(18121, settings={"batch_window_ms": 50}) as batched:
+        got: list[np.ndarray] = []
+        barrier = threading.Barrier(2)
+        threads = [threading.Thread(target=lambda: (barrier.wait(), got.append(ask(batched.port)))) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(30)
+        assert batched.process is not None
+    assert ok and len(got) == 2
+    for answer in got:
+        np.testing.assert_allclose(answer, expected, rtol=1e-5, atol=1e-6)
