@@ -14,19 +14,15 @@ thread until it is evicted).
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 from bench.machine import command_line, describe, write_results
+from bench.slam_service_soak import slam_service_child
 from metricslam.wire import keys
-from metricslam_slam.supervisor.launcher import free_port
-from metricslam_slam.supervisor.router import open_router
 from metricslam_slam.tools.client import query_health
 from metricslam_slam.tools.soak import rss_mib
-from metricslam_slam.zenoh_config import open_client
 
 
 def os_threads(pid: int) -> int:
@@ -38,25 +34,14 @@ def os_threads(pid: int) -> int:
 
 
 def run_config(n_ids: int, max_cameras: int, idle_timeout_s: float, settle_s: float) -> dict:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = open_router(endpoint)
-    client = open_client(endpoint)
-    env = {**os.environ, "SLAM_MAX_CAMERAS": str(max_cameras), "SLAM_CAMERA_IDLE_TIMEOUT_S": str(idle_timeout_s)}
-    cmd = [sys.executable, "-m", "metricslam_cli.main", "slam-service", "--zenoh-endpoint", endpoint,
-           "--depth-url", "none", "--status-period", "1"]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 60
-        while query_health(client, 1.0) is None:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f"the SLAM service did not come up: {' '.join(cmd)}")
+    env = {"SLAM_MAX_CAMERAS": str(max_cameras), "SLAM_CAMERA_IDLE_TIMEOUT_S": str(idle_timeout_s)}
+    with slam_service_child(env) as (client, proc):
         time.sleep(settle_s)
         before = {"threads": os_threads(proc.pid), "rss_mib": round(rss_mib(proc.pid), 1)}
         t0 = time.monotonic()
         for i in range(n_ids):
             client.put(keys.key(f"garbage-{i}", "frame"), b"\x00 not a frame " + i.to_bytes(4, "little"))
         peak = dict(before)
-        health = None
         while time.monotonic() - t0 < idle_timeout_s + 60:
             peak["threads"] = max(peak["threads"], os_threads(proc.pid))
             peak["rss_mib"] = max(peak["rss_mib"], round(rss_mib(proc.pid), 1))
@@ -69,11 +54,6 @@ def run_config(n_ids: int, max_cameras: int, idle_timeout_s: float, settle_s: fl
         time.sleep(settle_s)
         after = {"threads": os_threads(proc.pid), "rss_mib": round(rss_mib(proc.pid), 1)}
         health = query_health(client, 1.0) or {}
-    finally:
-        proc.terminate()
-        proc.wait(60)
-        client.close()
-        router.close()
     return {"ids": n_ids, "max_cameras": max_cameras, "idle_timeout_s": idle_timeout_s, "before": before,
             "peak": peak, "after": after, "all_closed_after_s": round(evicted_s, 1),
             "malformed_frames": health.get("malformed_frames"), "refused_frames": health.get("refused_frames"),

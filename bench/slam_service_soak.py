@@ -28,10 +28,12 @@ grows until it rolls over, so RSS is a saw-tooth and a slope fitted to it says l
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from bench.machine import command_line, describe, write_results
@@ -49,25 +51,34 @@ CONFIGS = {
 }
 
 
-def run_config(seq_dir: Path, frames: int, env_overrides: dict[str, str], warmup_frames: int) -> dict:
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+@contextlib.contextmanager
+def slam_service_child(env_overrides: dict[str, str], *args: str, start_timeout_s: float = 60.0):
+    """A router on a free loopback port, a client session and a ``metricslam slam-service
+    --depth-url none`` child process on it (``env_overrides`` over this environment, ``args``
+    appended), answering its health query -> ``(client, process)``; all stopped at exit."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     client = open_client(endpoint)
-    env = {**os.environ, **env_overrides}
     cmd = [sys.executable, "-m", "metricslam_cli.main", "slam-service", "--zenoh-endpoint", endpoint,
-           "--depth-url", "none", "--preset", "synth", "--status-period", "1"]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+           "--depth-url", "none", "--status-period", "1", *args]
+    proc = subprocess.Popen(cmd, env={**os.environ, **env_overrides}, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
     try:
+        deadline = time.monotonic() + start_timeout_s
         while query_health(client, 1.0) is None:
-            if proc.poll() is not None:
-                raise SystemExit(f"the SLAM service exited with {proc.returncode}: {' '.join(cmd)}")
-        result = soak(client, seq_dir, "soak0", frames, proc.pid)
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"the SLAM service did not come up (exit {proc.poll()}): {' '.join(cmd)}")
+        yield client, proc
     finally:
         proc.terminate()
         proc.wait(60)
         client.close()
         router.close()
+
+
+def run_config(seq_dir: Path, frames: int, env_overrides: dict[str, str], warmup_frames: int) -> dict:
+    with slam_service_child(env_overrides, "--preset", "synth") as (client, proc):
+        result = soak(client, seq_dir, "soak0", frames, proc.pid)
     samples = result["samples"]
     result.pop("last_status", None)
     result.update({

@@ -24,15 +24,16 @@ import logging
 log = logging.getLogger(__name__)
 
 
-def _malloc_trim():
-    name = ctypes.util.find_library("c")
+def _glibc_function(name: str):
+    """A function of the C library, or None when it is not glibc (musl, macOS) or has none."""
+    lib = ctypes.util.find_library("c")
     try:
-        return ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to trim
+        return getattr(ctypes.CDLL(lib), name) if lib else None
+    except (OSError, AttributeError):
         return None
 
 
-_TRIM = _malloc_trim()
+_TRIM = _glibc_function("malloc_trim")
 _M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
 
 
@@ -42,11 +43,7 @@ def limit_malloc_arenas(n_arenas: int) -> bool:
     start. Returns whether a cap was set (False: 0, or not glibc)."""
     if n_arenas <= 0:
         return False
-    name = ctypes.util.find_library("c")
-    try:
-        mallopt = ctypes.CDLL(name).mallopt if name else None
-    except (OSError, AttributeError):
-        return False
+    mallopt = _glibc_function("mallopt")
     return bool(mallopt is not None and mallopt(_M_ARENA_MAX, int(n_arenas)) == 1)
 
 
