@@ -85,9 +85,10 @@ class DepthPipeline:
         self.max_pixels = max_pixels
         self.max_decoded_bytes = max_decoded_bytes
         self.metrics = metrics
-        #: shares network runs between concurrent requests (``DEPTH_BATCH_WINDOW_MS``), or None
-        self.batcher = (MicroBatcher(model.predict_d_frac, batch_window_s, max_batch_images)
-                        if batch_window_s > 0 else None)
+        # the network call: shared between concurrent requests with a batch window
+        # (``DEPTH_BATCH_WINDOW_MS``), else the model's own
+        self._network = (MicroBatcher(model.predict_d_frac, batch_window_s, max_batch_images).predict
+                         if batch_window_s > 0 else model.predict_d_frac)
 
     def _min_decode_size(self, upload: Upload, query: CameraQuery) -> tuple[int, int]:
         """(width, height) the decoded image must keep (the JPEG reduction may not go below)."""
@@ -141,10 +142,7 @@ class DepthPipeline:
             self.metrics.decode.observe(time.perf_counter() - t0)
         t0 = time.perf_counter()
         try:
-            if self.batcher is not None:
-                d_frac = self.batcher.predict(images, cameras or None)
-            else:
-                d_frac = self.model.predict_d_frac(images, cameras or None)
+            d_frac = self._network(images, cameras or None)
         except ImageError as exc:  # our own message about the image (shape, dtype), no internals
             raise RequestProblem(400, "unusable-image", "Image not usable", str(exc)) from exc
         infer_s = time.perf_counter() - t0
