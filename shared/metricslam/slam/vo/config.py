@@ -66,7 +66,12 @@ class VOConfig(BaseModel):
     ba_in_background: bool = Field(True, description="solve the window in a worker thread")
     keyframe_waits_for_ba: bool = Field(
         True, description="a new keyframe waits for the solve still running (at most one in "
-        "flight); ordinary frames never wait")
+        "flight)")
+    ba_joins_next_frame: bool = Field(
+        True, description="the frame after a keyframe waits for that keyframe's background "
+        "solve, so every frame is tracked against the same map whatever the threads' timing "
+        "(the pose of the keyframe itself is out before the solve; at 10 Hz the solve is done "
+        "before the next frame arrives)")
     blas_threads: int | None = Field(
         1, ge=1, description="process-wide OpenBLAS thread cap set by LocalVO (its matrices are "
         "tiny; multi-threaded BLAS on a busy 2-core machine is ~10x slower); None = leave alone")

@@ -95,6 +95,7 @@ class LocalVO:
         if config.blas_threads is not None:
             limit_blas_threads(config.blas_threads)
         self._worker = BAWorker(self.window) if config.ba_in_background else None
+        self._solve_requested = False  # a background solve started since the last join
         self.window.on_correction = self._follow_window
 
     @property
@@ -111,6 +112,8 @@ class LocalVO:
         """Track one frame; never raises (bad input -> INVALID_FRAME, failure -> LOST)."""
         self.counters["frames"] += 1
         try:
+            if self.config.ba_joins_next_frame:
+                self._join_solve()
             gray = usable_gray(frame.image, self.camera, self.config.min_texture_std)
             if gray is None:
                 self.counters["invalid_frames"] += 1
@@ -362,13 +365,18 @@ class LocalVO:
         return (motion > cfg.keyframe_motion_px or ratio < cfg.keyframe_min_track_ratio
                 or self._frames_since_kf >= cfg.keyframe_max_frames)
 
-    def _add_keyframe(self, frame: Frame, gray: np.ndarray, T_world_cam: np.ndarray) -> None:
-        if self._worker is not None and self.config.keyframe_waits_for_ba:
-            # at most one solve in flight: a keyframe joins an optimized window (non-keyframe
-            # frames never wait)
+    def _join_solve(self) -> None:
+        """Wait for the window solve the last keyframe started, if any (``ba_joins_next_frame``
+        at every frame, ``keyframe_waits_for_ba`` at a keyframe): at most one in flight."""
+        if self._worker is not None and self._solve_requested:
             t0 = time.perf_counter()
             self._worker.wait_idle()
+            self._solve_requested = False
             self.timings_ms["ba_wait"].append(1e3 * (time.perf_counter() - t0))
+
+    def _add_keyframe(self, frame: Frame, gray: np.ndarray, T_world_cam: np.ndarray) -> None:
+        if self.config.keyframe_waits_for_ba:
+            self._join_solve()
         tr = self.frontend.tracks
         with self._lock:
             kf = self._make_kf(frame.index, int(frame.t_ns), T_world_cam, gray)
@@ -379,5 +387,6 @@ class LocalVO:
             self._snapshot_kf_tracks()
         if self._worker is not None:
             self._worker.request()
+            self._solve_requested = True
         else:
             self.window.optimize_and_marginalize()
