@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -200,6 +201,31 @@ def own_rig_block() -> str:
     return "\n".join(parts).rstrip() + "\n" if parts else ""
 
 
+def live_vs_offline_block() -> str:
+    """The generated block of docs/usage.md: the README stack recipe against the offline run,
+    judged by the rule of ``docs/history/rule_live_vs_offline_session10.md``."""
+    rows = ["| drive | live stream (`poses`) | live optimized (`poses --trajectory`), per repeat | offline `run` "
+            "| offline `run --deterministic` | median \\|live − offline\\| | within 1 pp |",
+            "| --- | --- | --- | --- | --- | --- | --- |"]
+    sources = []
+    for name in ("stack_first_pose_06.json", "stack_first_pose_0013.json"):
+        data = _load(name)
+        if not data:
+            continue
+        live = [r for r in data["live"] if r.get("initial_scale")]
+        offline = {r["deterministic"]: r["scale_error_pct"] for r in data["offline"]}
+        opt = [r["optimized"]["scale_error_pct"] for r in live]
+        diff = statistics.median(abs(e - offline[False]) for e in opt)
+        stream = sorted({f"{r['recorded']['scale_error_pct']:.1f} %" for r in live})
+        rows.append(f"| {Path(data['sequence']).name} | {', '.join(stream)} | "
+                    f"{', '.join(f'{e:.1f} %' for e in opt)} | {offline[False]:.1f} % | {offline[True]:.1f} % | "
+                    f"{diff:.1f} pp | {'yes' if diff <= 1.0 else 'no'} |")
+        sources.append(_src(name, data))
+    if not sources:
+        return ""
+    return "\n".join(["Scale error against the ground truth:", "", *rows, "", "\n\n".join(sources)]) + "\n"
+
+
 def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
@@ -267,10 +293,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     block, page = build()
     readme_path, page_path = ROOT / "README.md", ROOT / "docs" / "results.md"
-    own_path = ROOT / "docs" / "own_camera.md"
+    own_path, usage_path = ROOT / "docs" / "own_camera.md", ROOT / "docs" / "usage.md"
     outputs = [(readme_path, splice(readme_path.read_text(), block)), (page_path, page)]
     if own_path.is_file():
         outputs.append((own_path, splice(own_path.read_text(), own_rig_block(), "docs/own_camera.md")))
+    if usage_path.is_file():
+        outputs.append((usage_path, splice(usage_path.read_text(), live_vs_offline_block(), "docs/usage.md")))
     if args.check:
         stale = [str(p.relative_to(ROOT)) for p, new in outputs if not p.is_file() or p.read_text() != new]
         if stale:
