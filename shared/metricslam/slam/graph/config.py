@@ -29,7 +29,10 @@ class LoopConfig(BaseModel):
     ransac_iterations: int = Field(default=200, gt=0)
     reprojection_threshold_px: float = Field(default=3.0, gt=0)
     hamming_ratio: float = Field(default=0.8, gt=0, le=1)
-    min_keyframes_between_loops: int = Field(default=5, ge=0)
+    # indexed keyframes between accepted loops: a revisit is closed once, not every few keyframes
+    # along it; each loop costs a batch re-solve and ~0.25 MB of ISAM2 (20, was 5: session 11's
+    # pre-registered rule, docs/history/rule_loop_memory_session11.md)
+    min_keyframes_between_loops: int = Field(default=20, ge=0)
     # all-corner verification (:mod:`metricslam.slam.loop.corners`); "landmarks" = VO landmarks only
     verification: str = Field(default="corners", pattern="^(corners|landmarks)$")
     n_corner_features: int = Field(default=1000, gt=0)  # full-resolution ORB corners per keyframe
