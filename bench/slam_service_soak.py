@@ -48,6 +48,7 @@ CONFIGS = {
     "small bounds": {"SLAM_MAX_SESSION_KEYFRAMES": "100", "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "30"},
     "glibc arenas": {"SLAM_MALLOC_ARENAS": "0"},
     "500-keyframe sessions": {"SLAM_MAX_SESSION_KEYFRAMES": "500"},
+    "no heap trim": {"SLAM_HEAP_TRIM_PERIOD_S": "0"},
 }
 
 

@@ -231,3 +231,23 @@ def test_killed_service_continues_its_cameras(tmp_path: Path) -> None:
             interrupt_and_wait(proc)
         client.close()
         router.close()
+
+
+def test_the_status_thread_trims_the_heap_every_period_only_when_asked(stack, monkeypatch) -> None:
+    """``SLAM_HEAP_TRIM_PERIOD_S`` (default 10 s): the status thread returns free heap pages that
+    often; 0 leaves trimming to session closes."""
+    from metricslam_slam.service import slam_service
+
+    calls: list[float] = []
+    monkeypatch.setattr(slam_service, "trim_heap", lambda: calls.append(time.monotonic()))
+    from metricslam_slam.service.settings import SlamServiceSettings
+
+    assert SlamServiceSettings().heap_trim_period_s == 10.0
+    _, _, start_service = stack
+    svc = start_service(heap_trim_period_s=0)
+    time.sleep(0.6)  # six status periods
+    assert calls == []
+    svc.stop()
+    start_service(heap_trim_period_s=0.3)
+    assert _wait(lambda: len(calls) >= 3, 5.0), calls
+    assert min(b - a for a, b in zip(calls, calls[1:])) >= 0.25  # the period, not every status tick

@@ -66,6 +66,10 @@ class SlamServiceSettings(BaseSettings):
             :mod:`metricslam_slam.service.memory`); 0: glibc's default (8 per core). 2: the
             soak's RSS floor stops rising across roll-overs
             (``bench/results/slam_service_soak_10000.md``).
+        heap_trim_period_s: return free heap pages to the OS this often (``malloc_trim``, a few
+            ms, from the status thread); 0: only when a session closes. 10: the 10,000-frame
+            soak's peak RSS above warm-up fell by a third
+            (``bench/results/slam_service_soak_10000.md``).
         state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a
             restarted service continues a known camera from its last pose
             (``session_restarted``). None: nothing survives a restart.
@@ -96,6 +100,7 @@ class SlamServiceSettings(BaseSettings):
     max_closed_trajectories: int = Field(default=32, ge=0)
     max_session_keyframes: int | None = Field(default=1000, ge=10)
     malloc_arenas: int = Field(default=2, ge=0)
+    heap_trim_period_s: float = Field(default=10.0, ge=0)
     state_dir: Path | None = None
 
 

@@ -28,6 +28,7 @@ from metricslam.wire.codec import Message, TrajectoryMessage, encode
 from metricslam_slam.service.camera_worker import CameraWorker
 from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
+from metricslam_slam.service.memory import trim_heap
 from metricslam_slam.service.sessions import SessionFactory, make_session_factory
 from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import ZenohAccess, open_client
@@ -280,12 +281,17 @@ class SlamService:
 
     # -- status ------------------------------------------------------------------------------
     def _status_loop(self) -> None:
+        period = self.settings.heap_trim_period_s
+        trimmed_s = time.monotonic()
         while not self._stopped.wait(self.settings.status_period_s):
             probe = getattr(self.depth_source, "probe", None)
             if callable(probe):
                 probe()
             self._cameras.close_idle()
             self._publish_status()
+            if period > 0 and time.monotonic() - trimmed_s >= period:
+                trim_heap()
+                trimmed_s = time.monotonic()
 
     def _publish_status(self) -> None:
         depth_url, reachable, error, outages = self._depth_link()
