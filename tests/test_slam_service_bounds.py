@@ -240,8 +240,6 @@ def test_the_status_thread_trims_the_heap_every_period_only_when_asked(stack, mo
 
     calls: list[float] = []
     monkeypatch.setattr(slam_service, "trim_heap", lambda: calls.append(time.monotonic()))
-    from metricslam_slam.service.settings import SlamServiceSettings
-
     assert SlamServiceSettings().heap_trim_period_s == 10.0
     _, _, start_service = stack
     svc = start_service(heap_trim_period_s=0)

@@ -1,8 +1,8 @@
 """The VO's output does not depend on when its background window solve finishes
 (``VOConfig.ba_joins_next_frame``): the frame after a keyframe waits for that keyframe's solve.
 
-Before, a threaded ``metricslam run`` of ``2011_09_26_drive_0013`` gave scale errors from 20.8 to
-23.4 % over five runs, depending on which frames happened to be tracked against a solved map.
+Without it a threaded ``metricslam run`` moved by points of scale error from run to run, by which
+frames happened to be tracked against a solved map (``bench/results/threaded_spread_*.md``).
 """
 
 from __future__ import annotations

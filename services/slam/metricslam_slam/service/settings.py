@@ -68,8 +68,8 @@ class SlamServiceSettings(BaseSettings):
             (``bench/results/slam_service_soak_10000.md``).
         heap_trim_period_s: return free heap pages to the OS this often (``malloc_trim``, a few
             ms, from the status thread); 0: only when a session closes. 10: the 10,000-frame
-            soak's peak RSS above warm-up fell by a third
-            (``bench/results/slam_service_soak_10000.md``).
+            soak's peak RSS above warm-up fell by ~20 MiB at the same wall time
+            (``bench/results/slam_service_soak_10000.md`` now and at commit f04685c).
         state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a
             restarted service continues a known camera from its last pose
             (``session_restarted``). None: nothing survives a restart.
