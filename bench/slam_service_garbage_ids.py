@@ -16,21 +16,17 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 from bench.machine import command_line, describe, write_results
 from bench.slam_service_soak import slam_service_child
 from metricslam.wire import keys
 from metricslam_slam.tools.client import query_health
-from metricslam_slam.tools.soak import rss_mib
+from metricslam_slam.tools.soak import proc_status_value, rss_mib
 
 
 def os_threads(pid: int) -> int:
     """Threads of process ``pid`` (Linux ``/proc/<pid>/status``)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("Threads:"):
-            return int(line.split()[1])
-    raise RuntimeError(f"/proc/{pid}/status has no Threads line")
+    return proc_status_value(pid, "Threads")
 
 
 def run_config(n_ids: int, max_cameras: int, idle_timeout_s: float, settle_s: float) -> dict:

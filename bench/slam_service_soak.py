@@ -13,7 +13,8 @@ the router and the camera. Its RSS is sampled every 50 frames (``/proc/<pid>/sta
   bounds are reached several times within the run and RSS must level off;
 * ``glibc arenas``: the defaults with glibc's own malloc arena count (``SLAM_MALLOC_ARENAS=0``;
   the service caps them at 2 by default), the comparison for that setting;
-* ``500-keyframe sessions``: the defaults with half the session cap (``SLAM_MAX_SESSION_KEYFRAMES=500``).
+* ``500-keyframe sessions``: the defaults with half the session cap (``SLAM_MAX_SESSION_KEYFRAMES=500``);
+* ``no heap trim``: the defaults without the periodic ``malloc_trim`` (``SLAM_HEAP_TRIM_PERIOD_S=0``).
 
 The number to gate on is the peak above warm-up (``rss_mib_max - rss_mib_at_warmup``): a session
 grows until it rolls over, so RSS is a saw-tooth and a slope fitted to it says little.
@@ -86,12 +87,11 @@ def run_config(seq_dir: Path, frames: int, env_overrides: dict[str, str], warmup
         "env": env_overrides,
         "rss_mib_start": samples[0][1], "rss_mib_at_warmup": next(r for f, r in samples if f >= warmup_frames),
         "rss_mib_end": samples[-1][1], "rss_mib_max": max(r for _, r in samples),
-        "peak_mib_above_warmup": round(max(r for _, r in samples)
-                                       - next(r for f, r in samples if f >= warmup_frames), 1),
         "growth_mib_per_1000_frames_after_warmup": round(growth_mib_per_1000_frames(samples, warmup_frames), 1),
         "growth_mib_per_1000_frames_second_half": round(growth_mib_per_1000_frames(samples, frames // 2), 1),
         "rollovers": sum(e == "session_rolled_over" for e, _ in result["events"]),
     })
+    result["peak_mib_above_warmup"] = round(result["rss_mib_max"] - result["rss_mib_at_warmup"], 1)
     return result
 
 

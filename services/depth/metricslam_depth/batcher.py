@@ -8,7 +8,7 @@ in parallel; only the network call is shared.
 
 Whether it pays depends on the machine: a batched run amortises per-call overhead, but while
 the leader runs it the followers' threads idle. Measured on the 2-core dev machine
-(``bench/results/depth_service_batching.md``); the default is off.
+(``docs/depth_service.md``, ``bench/results/depth_service_batching_*.md``); the default is off.
 """
 
 from __future__ import annotations

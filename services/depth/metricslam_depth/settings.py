@@ -66,7 +66,7 @@ class DepthServiceSettings(BaseSettings):
     batch_window_ms: float = Field(
         0.0, ge=0, le=100, description="micro-batching: a request waits this long for concurrent "
         "requests and runs the network once for all their images (metricslam_depth.batcher); "
-        "0 = off (measured slower on 2 cores: bench/results/depth_service_batching.md)"
+        "0 = off (measured slower on 2 cores: docs/depth_service.md, bench/results/depth_service_batching_*.md)"
     )
     max_image_pixels: int = Field(
         4096 * 4096, ge=64, description="largest decoded image (width*height) accepted"

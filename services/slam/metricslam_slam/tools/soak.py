@@ -29,15 +29,21 @@ from metricslam_slam.tools.client import FramePublisher, PoseRecorder
 FRAME_PERIOD_NS = 100_000_000  # timestamps as from a 10 Hz camera
 
 
-def rss_mib(pid: int) -> float:
-    """Resident set size of process ``pid`` in MiB (Linux ``/proc/<pid>/status``)."""
+def proc_status_value(pid: int, name: str) -> int:
+    """The number on line ``name`` of Linux ``/proc/<pid>/status`` (e.g. ``VmRSS`` in KiB,
+    ``Threads``)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
+            if line.startswith(f"{name}:"):
+                return int(line.split()[1])
     except OSError as exc:
-        raise ServiceError(f"cannot read the memory of process {pid}: {exc}") from None
-    raise ServiceError(f"/proc/{pid}/status has no VmRSS line")
+        raise ServiceError(f"cannot read the status of process {pid}: {exc}") from None
+    raise ServiceError(f"/proc/{pid}/status has no {name} line")
+
+
+def rss_mib(pid: int) -> float:
+    """Resident set size of process ``pid`` in MiB (Linux ``/proc/<pid>/status``)."""
+    return proc_status_value(pid, "VmRSS") / 1024.0
 
 
 def ping_pong(n: int) -> Iterator[int]:
