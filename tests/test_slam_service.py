@@ -12,6 +12,7 @@ import zlib
 
 import numpy as np
 import pytest
+import zenoh
 
 from metricslam.camera import PinholeCamera
 from metricslam.slam.system_config import SystemConfig
@@ -20,7 +21,7 @@ from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, encode
 from metricslam_slam.service.sessions import IdentitySession
 from metricslam_slam.service.settings import SlamServiceSettings
-from metricslam_slam.service.slam_service import SlamService
+from metricslam_slam.service.slam_service import SlamService, congestion_for
 from metricslam_slam.supervisor.router import open_router
 from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health, query_trajectory
 from metricslam_slam.zenoh_config import open_client
@@ -204,3 +205,12 @@ def test_settled_trajectory_waits_until_the_answers_agree() -> None:
     t0 = time.monotonic()
     got = settled_trajectory(lambda: message(float(next(changing))), timeout_s=0.2, period_s=0.01)
     assert time.monotonic() - t0 < 1.0 and got.T_world_cam[1, 0, 3] > 5
+
+
+def test_poses_keyframes_and_status_are_published_with_block_congestion_control() -> None:
+    """Zenoh's default congestion control drops a sample when the TX queue is full; a pose for
+    every processed frame needs ``BLOCK`` (a starved TX thread once lost frame 9's pose)."""
+    for topic in ("pose", "keyframe", "status"):
+        assert congestion_for(topic) == zenoh.CongestionControl.BLOCK, topic
+    for topic in ("path", "landmarks", "keyframe_depth"):
+        assert congestion_for(topic) == zenoh.CongestionControl.DROP, topic

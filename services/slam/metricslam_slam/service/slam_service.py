@@ -35,6 +35,15 @@ from metricslam_slam.zenoh_config import ZenohAccess, open_client
 
 log = logging.getLogger(__name__)
 
+#: topics published with zenoh's ``BLOCK`` congestion control: a pose for every processed frame
+#: (zenoh's default, ``DROP``, lost one now and then when the TX thread was starved of CPU).
+RELIABLE_TOPICS = frozenset({"pose", "keyframe", "status"})
+
+
+def congestion_for(topic: str) -> zenoh.CongestionControl:
+    """``BLOCK`` for :data:`RELIABLE_TOPICS`, ``DROP`` for the map topics (superseded anyway)."""
+    return zenoh.CongestionControl.BLOCK if topic in RELIABLE_TOPICS else zenoh.CongestionControl.DROP
+
 
 class SlamService:
     """Run with ``with SlamService(settings) as svc: svc.wait()`` (or ``start()``/``stop()``).
@@ -212,12 +221,16 @@ class SlamService:
             map_publisher.after_frame(frame, est)
 
     def _put(self, camera_id: str, topic: str, message: Message) -> None:
+        """Publish ``message`` on ``metricslam/<camera_id>/<topic>``. Poses, keyframes and
+        status events are never dropped under congestion (:data:`RELIABLE_TOPICS`); the map
+        topics, which the next update supersedes, may be."""
         if self._session is None:
             return
         if topic == "pose":
             self._cameras.record_pose(camera_id, message)
         try:
-            self._session.put(keys.key(camera_id, topic), encode(message))
+            self._session.put(keys.key(camera_id, topic), encode(message),
+                              congestion_control=congestion_for(topic))
         except zenoh.ZError as exc:  # session closing; nothing to do but note it
             log.debug("publish on %s/%s failed: %s", camera_id, topic, exc)
         if self.ros2 is not None:
