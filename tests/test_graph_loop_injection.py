@@ -34,6 +34,9 @@ class _InjectingDetector:
         S = [sim3.from_se3(self.T[k], self.vo.sigma_at_kf[k]) for k in (self.old, self.claimed_new)]
         return [LoopCandidate(self.old, kf_id, sim3.inverse(S[0]) @ S[1], 200, 1.0, SIGMAS)]
 
+    def close(self) -> None:
+        pass
+
 
 def _run(detector_args: tuple | None, seed: int = 3):
     T = circle_path(N, 40.0, turns=(N - 1) / N)  # the last keyframe is next to the first

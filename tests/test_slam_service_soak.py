@@ -51,7 +51,7 @@ def test_loop_database_keeps_the_newest_keyframes(synth_sequence) -> None:
         frame = seq[k]
         uv = rng.uniform([0, 0], [frame.camera.width_px - 1, frame.camera.height_px - 1], (60, 2))
         detector.add_and_query(k, frame.image, frame.camera, uv, np.full(60, 0.1))
-        assert len(detector._features) <= 5 and len(detector._corners) <= 5
+        assert len(detector._store) <= 5
         assert detector._db is None or len(detector._db) == len(detector._order) <= 5
     assert detector._order == list(range(25, 30))
 
@@ -71,8 +71,8 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
     """The database's largest per-keyframe item, every indexed keyframe's ~1000 corners, is held
     in at most 56 bytes a corner (unpacked: 96 — pixels float64 16, descriptor 32, network point
     24, triangulated point 24 though most corners have none; packed, the network point is its
-    depth, 8), and unpacks bit for bit to what verification used (rendered depth as the network's
-    map, the true motion as the VO's)."""
+    depth, 8), on disk by default, and comes back from there bit for bit as what verification
+    used (rendered depth as the network's map, the true motion as the VO's)."""
     from metricslam.datasets import open_sequence
     from metricslam.geometry import se3
     from metricslam.slam.loop import LoopDetector
@@ -100,16 +100,18 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
             T_prev_k[:3, 3] *= 2.0  # in VO units
         detector.add_and_query(k, frame.image, frame.camera, uv, xi, inv_depth_map=inv_depth, T_prevkf_kf=T_prev_k)
         prev_T = frame.T_world_cam
-    assert len(detector._corners) == len(made) == 15
+    assert len(detector._store) == len(made) == 15
+    assert detector._store.n_kept_in_memory == 0  # all on disk (the default), read back below
+    entries = {kf_id: detector._store.corners(kf_id) for kf_id in detector._order}
     n_corners = sum(len(f.uv_px) for f in made.values())
     assert n_corners > 15 * 500
     assert sum(f.n_with_depth for f in made.values()) > n_corners / 2  # network points for most corners
     assert any(np.isfinite(f.points_geo).all(axis=1).any() for f in made.values())  # some triangulated
-    stored = sum(_array_bytes(entry) for entry in detector._corners.values())
+    stored = sum(_array_bytes(entry) for entry in entries.values())
     assert stored <= 56 * n_corners, f"{stored / n_corners:.1f} bytes per corner"
-    assert all(entry.camera is not None for entry in detector._corners.values())  # network points as depth
+    assert all(entry.camera is not None for entry in entries.values())  # network points as depth
     for kf_id, features in zip(detector._order, made.values()):
-        entry = detector._corners[kf_id]
+        entry = entries[kf_id]
         assert entry.n_with_depth == features.n_with_depth
         back = entry.unpack()
         for name in ("uv_px", "descriptors", "points", "points_geo"):

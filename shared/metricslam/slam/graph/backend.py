@@ -186,6 +186,8 @@ class GlobalBackend:
         with self._lock:
             self.estimator.finish()
             self._take_solved()
+            if self.estimator.loop_detector is not None:
+                self.estimator.loop_detector.close()  # its temporary feature file
 
     def stats(self) -> dict:
         """Counters and timings (ms) of the back end."""

@@ -53,6 +53,10 @@ class LoopConfig(BaseModel):
     # ones are forgotten, so a long drive's memory stays bounded.
     # 1000 = every keyframe of the longest benchmark run (1271 keyframes, stride 2) kept.
     max_database_keyframes: int = Field(default=1000, ge=1)
+    # the database's verification features (packed corners, landmark features) in a temporary
+    # SQLite file, read back only for a query's candidates, so they are not resident
+    # (:mod:`metricslam.slam.loop.feature_store`); false keeps them in RAM.
+    features_on_disk: bool = True
 
 
 #: depth requests an OFFLINE run lets wait (``metricslam run --depth-queue``): it waits for every

@@ -10,7 +10,9 @@ inverse-depth map in scale mode, from triangulation against the previous keyfram
 falling back to the VO-landmark verification (:func:`metricslam.slam.loop.verification.verify`)
 when a keyframe has no corner depth. The database keeps the newest ``max_database_keyframes``
 indexed keyframes; older ones are forgotten (bounded memory on a long drive). Their corners are
-held packed (:class:`~metricslam.slam.loop.corners.PackedCorners`: lossless, half the memory).
+held packed (:class:`~metricslam.slam.loop.corners.PackedCorners`: lossless, half the memory) and,
+with ``features_on_disk``, with the landmark features in a temporary SQLite file
+(:class:`~metricslam.slam.loop.feature_store.FeatureStore`): only the bag-of-words rows stay in RAM.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from metricslam.depth.model import to_gray_u8
 from metricslam.depth.sample import sample_map
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import corners as corner_mod
+from metricslam.slam.loop.feature_store import FeatureStore
 from metricslam.slam.loop.verification import (
-    LandmarkFeatures,
     landmark_features,
     verify,
 )
@@ -74,8 +76,7 @@ class LoopDetector:
         self._vocab: BinaryVocabulary | None = None
         self._db: BowDatabase | None = None
         self._pending: list[tuple[int, np.ndarray]] = []  # (kf_id, ORB descriptors) before training
-        self._features: dict[int, LandmarkFeatures] = {}
-        self._corners: dict[int, corner_mod.PackedCorners] = {}  # packed: half the memory
+        self._store = FeatureStore(on_disk=self.config.features_on_disk)  # verification features
         self._orb_corners = cv2.ORB_create(nfeatures=self.config.n_corner_features, nlevels=4,
                                            fastThreshold=12)
         self._prev_corners: tuple[np.ndarray, np.ndarray] | None = None  # last keyframe's (uv, desc)
@@ -113,19 +114,20 @@ class LoopDetector:
         prev, self._prev_corners = self._prev_corners, ((uv_c, desc_c) if uv_c is not None else None)
         if (self._calls - 1) % self.config.keyframe_stride:
             return []
-        new_corners = None
+        new_corners = packed = None
         if corner_mode:
             new_corners = self._corner_features(uv_c, desc_c, camera, gray.shape, landmarks_uv_px,
                                                 landmarks_inv_depth, inv_depth_map, T_prevkf_kf, prev)
-            self._corners[kf_id] = corner_mod.PackedCorners.pack(new_corners, camera)
+            packed = corner_mod.PackedCorners.pack(new_corners, camera)
         desc = retrieval_descriptors(self._orb, gray, self.config.image_scale)
         extra = None
         if self.config.fast_corners > 0:
             kps = self._fast.detect(gray, None)
             kps = sorted(kps, key=lambda k: -k.response)[: self.config.fast_corners]
             extra = np.array([k.pt for k in kps], dtype=float).reshape(-1, 2)
-        self._features[kf_id] = landmark_features(self._orb_landmarks, gray, camera, landmarks_uv_px,
-                                                  landmarks_inv_depth, extra_uv_px=extra)
+        new_features = landmark_features(self._orb_landmarks, gray, camera, landmarks_uv_px,
+                                         landmarks_inv_depth, extra_uv_px=extra)
+        self._store.put(kf_id, new_features, packed)
         self._order.append(kf_id)
         self._forget_beyond_cap()
         if self._vocab is None:
@@ -156,13 +158,18 @@ class LoopDetector:
                 break
             old = int(ids[i])
             res = None
-            cn = new_corners if kf_id in self._corners else None
-            co = self._corners.get(old)
-            if cn is not None and co is not None and min(cn.n_with_depth, co.n_with_depth) >= cfg.min_depth_inliers:
-                res = corner_mod.verify_corners(cn, co.unpack(), camera, cfg, self._rng)
+            n_old = self._store.n_with_depth(old)
+            co = None
+            if new_corners is not None and n_old is not None and min(new_corners.n_with_depth, n_old) >= cfg.min_depth_inliers:
+                co = self._store.corners(old)
+            if co is not None:
+                res = corner_mod.verify_corners(new_corners, co.unpack(), camera, cfg, self._rng)
                 self.n_corner_verified += res is not None
             else:
-                res = verify(self._features[kf_id], self._features[old], camera, cfg, self._rng)
+                old_features = self._store.landmarks(old)
+                if old_features is None:  # unreadable (counted by the store): next candidate
+                    continue
+                res = verify(new_features, old_features, camera, cfg, self._rng)
             if res is not None:
                 out.append(LoopCandidate(old, kf_id, res.S_old_new, res.n_inliers, float(scores[i]), res.sigmas))
                 self._last_loop_at = n - 1
@@ -170,13 +177,17 @@ class LoopDetector:
                 break
         return out
 
+    def close(self) -> None:
+        """Release the verification features (their temporary file); queries after this verify
+        nothing (no candidate has features left)."""
+        self._store.close()
+
     def _forget_beyond_cap(self) -> None:
         """Forget the oldest indexed keyframes beyond ``max_database_keyframes``. Positions in
         the bag-of-words database shift down, and so does the last loop's position."""
         while len(self._order) > self.config.max_database_keyframes:
             old = self._order.pop(0)
-            self._features.pop(old, None)
-            self._corners.pop(old, None)
+            self._store.forget(old)
             self._pending = [(k, d) for k, d in self._pending if k != old]
             if self._db is not None and len(self._db):
                 self._db.forget_oldest()
