@@ -39,19 +39,21 @@ def _load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
-def _env(pythonpath: str) -> dict[str, str]:
+def _env(pythonpath: str, variables: dict[str, str] | None = None) -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(Path(pythonpath).resolve())
+    env.update(variables or {})
     return env
 
 
-def timed_run(pythonpath: str, seq: str, out: Path, extra: list[str]) -> dict:
+def timed_run(pythonpath: str, seq: str, out: Path, extra: list[str],
+              variables: dict[str, str] | None = None) -> dict:
     """One ``metricslam run``; frames/s from its ``--json``, CPU from ``os.wait4``."""
     stats = out.with_suffix(".json")
     cmd = METRICSLAM + ["run", seq, "--no-progress", "--out", str(out), "--json", str(stats), *extra]
     load = _load()
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=_env(pythonpath), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, env=_env(pythonpath, variables), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
@@ -78,7 +80,9 @@ def render_markdown(report: dict) -> str:
     names = [v["name"] for v in report["variants"]]
     lines = ["# `metricslam run` before / after, interleaved", "", f"Command: ``{report['command']}``  ",
              f"Machine: {report['machine']}  ", f"Date: {report['date_utc']}  ",
-             "Variants: " + ", ".join(f"`{v['name']}` = PYTHONPATH `{v['pythonpath']}`" for v in report["variants"]),
+             "Variants: " + ", ".join(f"`{v['name']}` = PYTHONPATH `{v['pythonpath']}`"
+                                      + "".join(f" `{k}={x}`" for k, x in v.get("env", {}).items())
+                                      for v in report["variants"]),
              "", *[f"* {x}" for x in report["notes"]], "", "## Speed (median over rounds)", "",
              "| sequence | variant | runs | frames/s (run's own) | min–max | CPU ms / frame | wall s incl. start-up "
              "| load before each run (1 min) |", "| --- | --- | ---: | ---: | --- | ---: | ---: | --- |"]
@@ -105,6 +109,8 @@ def render_markdown(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--variant", action="append", required=True, metavar="NAME=PYTHONPATH")
+    p.add_argument("--variant-env", action="append", default=[], metavar="NAME=VAR=VALUE",
+                   help="an environment variable for one variant's runs (e.g. a config switch the other lacks)")
     p.add_argument("--seq", action="append", required=True, metavar="NAME=DIR[:GT_POSES]")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--run-args", default="", help="extra `metricslam run` arguments for the timed runs")
@@ -113,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="write OUT.json and OUT.md")
     args = p.parse_args(argv)
     variants = [dict(zip(("name", "pythonpath"), v.split("=", 1))) for v in args.variant]
+    for spec in args.variant_env:
+        name, var, value = spec.split("=", 2)
+        next(v for v in variants if v["name"] == name).setdefault("env", {})[var] = value
     seqs = []
     for spec in args.seq:
         name, _, rest = spec.partition("=")
@@ -126,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, path, _ in seqs:
             order = variants if r % 2 == 0 else variants[::-1]  # alternate who goes first
             for v in order:
-                row = timed_run(v["pythonpath"], path, work / f"{name}_{v['name']}_{r}.txt", args.run_args.split())
+                row = timed_run(v["pythonpath"], path, work / f"{name}_{v['name']}_{r}.txt", args.run_args.split(),
+                                v.get("env"))
                 report["speed"].setdefault(name, {}).setdefault(v["name"], []).append(row)
                 print(f"round {r} {name} {v['name']}: {row['fps']:.1f} frames/s, {row['cpu_ms_per_frame']:.1f} "
                       f"CPU ms/frame, load {row['load_before'][0]:.2f}", flush=True)
@@ -135,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             first = None
             for v in variants:
                 est = work / f"{name}_{v['name']}_det.txt"
-                timed_run(v["pythonpath"], path, est, ["--deterministic"])
+                timed_run(v["pythonpath"], path, est, ["--deterministic"], v.get("env"))
                 a = {"sha256": hashlib.sha256(est.read_bytes()).hexdigest(), "trajectory": str(est)}
                 if gt:
                     a["eval"] = evaluate(v["pythonpath"], gt, est)

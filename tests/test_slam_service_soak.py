@@ -71,7 +71,7 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
     """The database's largest per-keyframe item, every indexed keyframe's ~1000 corners, is held
     in at most 56 bytes a corner (unpacked: 96 — pixels float64 16, descriptor 32, network point
     24, triangulated point 24 though most corners have none; packed, the network point is its
-    depth, 8), on disk by default, and comes back from there bit for bit as what verification
+    depth, 8), on disk (``features_on_disk``), and comes back from there bit for bit as what verification
     used (rendered depth as the network's map, the true motion as the VO's)."""
     from metricslam.datasets import open_sequence
     from metricslam.geometry import se3
@@ -79,7 +79,8 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
     from metricslam.slam.loop.corners import CornerFeatures
 
     seq = open_sequence(synth_sequence(30))
-    detector = LoopDetector(LoopConfig(vocabulary_train_keyframes=3, vocabulary_words=50, keyframe_stride=1))
+    detector = LoopDetector(LoopConfig(vocabulary_train_keyframes=3, vocabulary_words=50, keyframe_stride=1,
+                                         features_on_disk=True))
     made: dict[int, CornerFeatures] = {}
     corner_features = detector._corner_features
 
@@ -101,7 +102,7 @@ def test_loop_database_entries_are_packed_losslessly(synth_sequence) -> None:
         detector.add_and_query(k, frame.image, frame.camera, uv, xi, inv_depth_map=inv_depth, T_prevkf_kf=T_prev_k)
         prev_T = frame.T_world_cam
     assert len(detector._store) == len(made) == 15
-    assert detector._store.n_kept_in_memory == 0  # all on disk (the default), read back below
+    assert detector._store.n_kept_in_memory == 0  # all on disk, read back below
     entries = {kf_id: detector._store.corners(kf_id) for kf_id in detector._order}
     n_corners = sum(len(f.uv_px) for f in made.values())
     assert n_corners > 15 * 500
