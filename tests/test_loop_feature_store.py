@@ -121,3 +121,16 @@ def test_on_disk_the_features_are_not_resident() -> None:
     assert store.n_kept_in_memory == 0
     assert _equal(store.corners(899).descriptors, entries[899 % len(entries)][1].descriptors)
     store.close()
+
+
+def test_packed_arrays_keep_dtype_shape_and_values_including_empty_ones() -> None:
+    from metricslam.slam.loop.feature_store import pack_arrays, unpack_arrays
+
+    arrays = {"empty": np.zeros((0, 32), np.uint8), "flags": np.array([True, False, True]),
+              "scalar": np.array(7, np.int64), "nan": np.array([[np.nan, 1.5, -np.inf]], np.float64),
+              "f32": np.arange(6, dtype=np.float32).reshape(3, 2)[:, ::-1], "gone": None}
+    back = unpack_arrays(pack_arrays(arrays))
+    assert set(back) == set(arrays) - {"gone"}
+    for name, value in back.items():
+        assert _equal(arrays[name], value), name
+        assert value.flags.writeable and value.flags.c_contiguous

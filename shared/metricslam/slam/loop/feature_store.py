@@ -11,8 +11,11 @@ resident memory beyond SQLite's page cache (``cache_kib``) and a few small value
 
 SQLite's private temporary database (filename ``""``) lives in ``SQLITE_TMPDIR``/``TMPDIR``
 (else ``/var/tmp``, ``/usr/tmp``, ``/tmp``); SQLite removes the file as it opens it, so nothing is
-left behind by a crash, and forgotten entries' pages are reused. Arrays are stored in numpy's
-``.npz`` format and come back equal (lossless; dtypes kept). A write that fails (full or
+left behind by a crash, and forgotten entries' pages are reused. An entry's arrays are one blob
+(:func:`pack_arrays`: a JSON header of names, dtypes and shapes, then the raw bytes) and come back
+equal (lossless; dtypes kept). Most reads are candidates that do not verify, so decoding has to be
+cheap: with ``.npz`` (Python's ``zipfile``, holding the GIL the VO thread needs) the store slowed
+a 2,700-frame run with loops (``docs/history/rule_loop_spill_session12b.md``). A write that fails (full or
 read-only temporary directory) keeps that entry in RAM and counts it (``n_kept_in_memory``): no
 loop candidate is lost; a read that fails is counted (``n_read_errors``) and the candidate is
 skipped for that query.
@@ -20,7 +23,7 @@ skipped for that query.
 
 from __future__ import annotations
 
-import io
+import json
 import logging
 import sqlite3
 
@@ -36,15 +39,24 @@ log = logging.getLogger(__name__)
 DEFAULT_CACHE_KIB = 512
 
 
-def _to_npz(arrays: dict[str, np.ndarray | None]) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, **{k: v for k, v in arrays.items() if v is not None})
-    return buf.getvalue()
+def pack_arrays(arrays: dict[str, np.ndarray | None]) -> bytes:
+    """Numeric arrays (None values left out) as one blob: the header's length (4 bytes, little
+    endian), a JSON header ``[[name, dtype, shape], ...]``, then each array's bytes in C order."""
+    present = [(k, np.asarray(v, order="C")) for k, v in arrays.items() if v is not None]
+    header = json.dumps([[k, v.dtype.str, list(v.shape)] for k, v in present]).encode()
+    return b"".join([len(header).to_bytes(4, "little"), header, *(v.tobytes() for _, v in present)])
 
 
-def _from_npz(blob: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
+def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
+    """The arrays of :func:`pack_arrays` (writable copies, equal dtypes and shapes)."""
+    n = int.from_bytes(blob[:4], "little")
+    out, offset = {}, 4 + n
+    for name, dtype, shape in json.loads(blob[4:offset]):
+        dt = np.dtype(dtype)
+        count = int(np.prod(shape, dtype=np.int64))
+        out[name] = np.frombuffer(blob, dt, count, offset).reshape(tuple(shape)).copy()
+        offset += count * dt.itemsize
+    return out
 
 
 def _landmarks_arrays(f: LandmarkFeatures) -> dict[str, np.ndarray | None]:
@@ -97,8 +109,8 @@ class FeatureStore:
         if self._db is not None:
             try:
                 self._db.execute("INSERT OR REPLACE INTO f VALUES (?, ?, ?)", (
-                    kf_id, _to_npz(_landmarks_arrays(landmarks)),
-                    None if corners is None else _to_npz(_corners_arrays(corners))))
+                    kf_id, pack_arrays(_landmarks_arrays(landmarks)),
+                    None if corners is None else pack_arrays(_corners_arrays(corners))))
                 return
             except sqlite3.Error as exc:
                 if not self.n_kept_in_memory:
@@ -116,14 +128,14 @@ class FeatureStore:
         if kf_id in self._ram:
             return self._ram[kf_id][0]
         blob = self._read(kf_id, "landmarks")
-        return None if blob is None else _landmarks_from(_from_npz(blob))
+        return None if blob is None else _landmarks_from(unpack_arrays(blob))
 
     def corners(self, kf_id: int) -> PackedCorners | None:
         """The packed corners of ``kf_id`` (None: none, unknown id or unreadable)."""
         if kf_id in self._ram:
             return self._ram[kf_id][1]
         blob = self._read(kf_id, "corners")
-        return None if blob is None else _corners_from(_from_npz(blob), self._meta[kf_id][1])
+        return None if blob is None else _corners_from(unpack_arrays(blob), self._meta[kf_id][1])
 
     def forget(self, kf_id: int) -> None:
         """Drop ``kf_id`` (no-op when unknown)."""
