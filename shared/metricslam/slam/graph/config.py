@@ -55,9 +55,9 @@ class LoopConfig(BaseModel):
     max_database_keyframes: int = Field(default=1000, ge=1)
     # the database's verification features (packed corners, landmark features) in a temporary
     # SQLite file, read back only for a query's candidates, so they are not resident
-    # (:mod:`metricslam.slam.loop.feature_store`); false keeps them in RAM. Off until the
-    # decision rule in docs/history/rule_loop_spill_session12.md says otherwise.
-    features_on_disk: bool = False
+    # (:mod:`metricslam.slam.loop.feature_store`); false keeps them in RAM (e.g. no writable
+    # temporary directory). Chosen by docs/history/rule_loop_spill_session12c.md.
+    features_on_disk: bool = True
 
 
 #: depth requests an OFFLINE run lets wait (``metricslam run --depth-queue``): it waits for every
