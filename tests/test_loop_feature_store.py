@@ -134,3 +134,21 @@ def test_packed_arrays_keep_dtype_shape_and_values_including_empty_ones() -> Non
     for name, value in back.items():
         assert _equal(arrays[name], value), name
         assert value.flags.writeable and value.flags.c_contiguous
+
+
+def test_the_detector_reports_the_store_degrading(synth_sequence) -> None:
+    """A full temporary directory shows up in the back end's stats, not only in a log line."""
+    from metricslam.datasets import open_sequence
+    from metricslam.slam.graph.config import LoopConfig
+    from metricslam.slam.loop import LoopDetector
+
+    seq = open_sequence(synth_sequence(6))
+    detector = LoopDetector(LoopConfig(vocabulary_train_keyframes=3, vocabulary_words=50, keyframe_stride=1))
+    assert detector.store_counters == {"loop_features_in_ram": 0, "loop_feature_read_errors": 0}
+    detector._store._db = _FullDisk()
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        frame = seq[k]
+        uv = rng.uniform([0, 0], [frame.camera.width_px - 1, frame.camera.height_px - 1], (60, 2))
+        detector.add_and_query(k, frame.image, frame.camera, uv, np.full(60, 0.1))
+    assert detector.store_counters["loop_features_in_ram"] == 3

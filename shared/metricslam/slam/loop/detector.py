@@ -177,6 +177,13 @@ class LoopDetector:
                 break
         return out
 
+    @property
+    def store_counters(self) -> dict[str, int]:
+        """The feature store's degradations: entries kept in RAM because a write failed, and
+        candidate reads that failed (both 0 when the temporary directory works)."""
+        return {"loop_features_in_ram": self._store.n_kept_in_memory,
+                "loop_feature_read_errors": self._store.n_read_errors}
+
     def close(self) -> None:
         """Release the verification features (their temporary file); queries after this verify
         nothing (no candidate has features left)."""
