@@ -36,7 +36,8 @@ from metricslam_slam.zenoh_config import ZenohAccess, open_client
 log = logging.getLogger(__name__)
 
 #: topics published with zenoh's ``BLOCK`` congestion control: a pose for every processed frame
-#: (zenoh's default, ``DROP``, lost one now and then when the TX thread was starved of CPU).
+#: (zenoh's default, ``DROP``, discards a sample when the transmit queue is full, as it can be
+#: when the service is starved of CPU).
 RELIABLE_TOPICS = frozenset({"pose", "keyframe", "status"})
 
 

@@ -2,8 +2,8 @@
 a private temporary SQLite database on disk (or in RAM).
 
 Retrieval needs only each indexed keyframe's bag-of-words row. Its verification features — the
-packed ORB corners with their depths (:class:`~metricslam.slam.loop.corners.PackedCorners`,
-~45 KiB for ~950 corners) and the landmark features
+packed ORB corners with their depths (:class:`~metricslam.slam.loop.corners.PackedCorners`, at
+most 56 bytes a corner, ~1,000 corners) and the landmark features
 (:class:`~metricslam.slam.loop.verification.LandmarkFeatures`) — are read only when the keyframe
 is one of a query's few retrieval candidates. On disk they cost a 1000-keyframe session no
 resident memory beyond SQLite's page cache (``cache_kib``) and a few small values per keyframe
@@ -14,11 +14,12 @@ SQLite's private temporary database (filename ``""``) lives in ``SQLITE_TMPDIR``
 left behind by a crash, and forgotten entries' pages are reused. An entry's arrays are one blob
 (:func:`pack_arrays`: a JSON header of names, dtypes and shapes, then the raw bytes) and come back
 equal (lossless; dtypes kept). Most reads are candidates that do not verify, so decoding has to be
-cheap: with ``.npz`` (Python's ``zipfile``, holding the GIL the VO thread needs) the store slowed
-a 2,700-frame run with loops (``docs/history/rule_loop_spill_session12b.md``). A write that fails (full or
-read-only temporary directory) keeps that entry in RAM and counts it (``n_kept_in_memory``): no
-loop candidate is lost; a read that fails is counted (``n_read_errors``) and the candidate is
-skipped for that query.
+cheap: with ``.npz`` (Python's ``zipfile``, holding the GIL the VO thread needs) the store
+slowed a 2,700-frame run with loops (``docs/history/rule_loop_spill_session12b.md``). A write that
+fails (full or read-only temporary directory) keeps that entry in RAM and counts it
+(``n_kept_in_memory``): no loop candidate is lost; a read that fails is counted
+(``n_read_errors``) and the candidate is skipped for that query. The loop detector reports both
+in the back end's stats.
 """
 
 from __future__ import annotations
