@@ -228,7 +228,9 @@ def live_vs_offline_block() -> str:
 
 
 #: the 10,000-frame soaks of docs/deployment.md (#19's target: peak RSS within 50 MiB of warm-up)
-SOAK_FILES = ("slam_service_soak_10000.json", "slam_service_soak_10000_500kf.json")
+#: and how each row is told apart (every run of one setting is shown, not the best)
+SOAK_FILES = (("slam_service_soak_10000.json", ""), ("slam_service_soak_10000_repeat.json", ", second run"),
+              ("slam_service_soak_10000_500kf.json", ""))
 
 
 def soak_block() -> str:
@@ -237,12 +239,12 @@ def soak_block() -> str:
             "| peak above warm-up | growth MiB per 1000 frames (after warm-up; 2nd half) | within 50 MiB |",
             "| --- | --- | --- | --- | --- | --- |"]
     sources = []
-    for name in SOAK_FILES:
+    for name, label in SOAK_FILES:
         data = _load(name)
         if not data:
             continue
         for config, r in data["results"].items():
-            env = ", ".join(f"`{k}={v}`" for k, v in r.get("env", {}).items()) or f"none ({config})"
+            env = (", ".join(f"`{k}={v}`" for k, v in r.get("env", {}).items()) or f"none ({config})") + label
             rows.append(f"| {env} | {r['rollovers']} | {r['rss_mib_at_warmup']} / {r['rss_mib_end']} / "
                         f"{r['rss_mib_max']} | {r['peak_mib_above_warmup']} MiB | "
                         f"{r['growth_mib_per_1000_frames_after_warmup']}; {r['growth_mib_per_1000_frames_second_half']} | "
