@@ -34,6 +34,8 @@ class _InjectingDetector:
         S = [sim3.from_se3(self.T[k], self.vo.sigma_at_kf[k]) for k in (self.old, self.claimed_new)]
         return [LoopCandidate(self.old, kf_id, sim3.inverse(S[0]) @ S[1], 200, 1.0, SIGMAS)]
 
+    store_counters: dict = {}
+
     def close(self) -> None:
         pass
 

@@ -3,8 +3,7 @@ lossless round trips, forgetting, a failing write kept in RAM, and what stays re
 
 from __future__ import annotations
 
-import ctypes
-import gc
+import os
 import sqlite3
 
 import numpy as np
@@ -14,6 +13,8 @@ from metricslam.camera import PinholeCamera
 from metricslam.slam.loop.corners import CornerFeatures, PackedCorners
 from metricslam.slam.loop.feature_store import FeatureStore
 from metricslam.slam.loop.verification import LandmarkFeatures
+from metricslam_slam.service.memory import release_memory
+from metricslam_slam.tools.soak import rss_mib
 
 CAMERA = PinholeCamera(fx_px=700.0, fy_px=700.0, cx_px=610.0, cy_px=180.0, width_px=1226, height_px=370)
 
@@ -99,10 +100,8 @@ def test_a_failing_write_keeps_the_features_in_ram_and_counts_it(caplog) -> None
 
 
 def _rss_mib() -> float:
-    gc.collect()
-    ctypes.CDLL("libc.so.6").malloc_trim(0)
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+    release_memory()  # collect and malloc_trim, so RSS counts what is held
+    return rss_mib(os.getpid())
 
 
 def test_on_disk_the_features_are_not_resident() -> None:

@@ -213,7 +213,7 @@ class GlobalBackend:
             "solve_ms_max": est.solve_ms.max_ms,
             "loop_ms_mean": est.loop_ms.mean_ms,
             "scale_established": self.scale_established,
-            **getattr(est.loop_detector, "store_counters", {}),
+            **(est.loop_detector.store_counters if est.loop_detector is not None else {}),
         }
 
     # -- work ---------------------------------------------------------------------------------

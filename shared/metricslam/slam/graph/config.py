@@ -48,9 +48,10 @@ class LoopConfig(BaseModel):
     geometric_reprojection_px: float = Field(default=3.0, gt=0)
     min_geometric_points: int = Field(default=6, ge=3)  # old-side triangulated corners (translation)
     min_geometric_scale_points: int = Field(default=5, ge=2)  # both-sided (scale)
-    # indexed keyframes the place-recognition database holds (descriptors, ~1000 corners each:
-    # ~0.05 MB per entry, packed: :class:`metricslam.slam.loop.corners.PackedCorners`); older
-    # ones are forgotten, so a long drive's memory stays bounded.
+    # indexed keyframes the place-recognition database holds (a bag-of-words row each in RAM;
+    # ~1000 corners each, packed: :class:`metricslam.slam.loop.corners.PackedCorners`, on disk
+    # with ``features_on_disk``); older ones are forgotten, so a long drive's memory and disk
+    # stay bounded.
     # 1000 = every keyframe of the longest benchmark run (1271 keyframes, stride 2) kept.
     max_database_keyframes: int = Field(default=1000, ge=1)
     # the database's verification features (packed corners, landmark features) in a temporary
