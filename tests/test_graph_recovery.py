@@ -5,6 +5,7 @@ when an update does fail (it must not leave ISAM2 half-updated: "key already exi
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from graph_chain import add_odometry_keyframe
 from metricslam.geometry import se3, sim3
 from metricslam.slam.graph.config import GraphConfig
@@ -63,3 +64,34 @@ def test_long_loop_free_chain_is_not_indeterminate():
     a, b = qr.estimates(), chol.estimates()
     assert max(np.linalg.norm(a[k][:3, 3] - b[k][:3, 3]) for k in a) < 0.05  # recovered, same map
     assert np.allclose(a[399][:3, 3], [0.0, 0.0, 1197.0], atol=0.05)
+
+
+def test_a_rebuild_that_fails_leaves_the_committed_graph_and_keeps_the_pending_factors(monkeypatch):
+    # the old ISAM2 is released before the batch solve (memory), so a failure must rebuild it
+    from metricslam.errors import GraphError
+    from metricslam.slam.graph import batch_solve
+
+    cfg = GraphConfig()
+    graph, kfs = _chain(circle_path(22, 40.0, 0.5), 10, cfg, extra=1)
+    assert graph.solve()["batch"] is False  # incremental
+    before, n_committed = graph.estimates(), graph.factor_graph().size()
+    real = batch_solve.solve_batch
+
+    def failing(*args, **kwargs):
+        raise GraphError("simulated: no fresh ISAM2")
+
+    monkeypatch.setattr(batch_solve, "solve_batch", failing)
+    add_odometry_keyframe(graph, kfs[9], kfs[10], cfg)
+    S_loop = relative_sim3(kfs[0].T_vo_kf, kfs[10].T_vo_kf)
+    assert graph.add_loop(kfs[0].kf_id, kfs[10].kf_id, S_loop, np.array([0.01] * 3 + [0.1] * 3 + [0.05])).accepted
+    with pytest.raises(GraphError, match="simulated"):
+        graph.solve()
+    after = graph.estimates()
+    assert set(after) == set(before) | {kfs[10].kf_id}
+    assert max(np.abs(after[k] - before[k]).max() for k in before) < 1e-9  # the committed map, as it was
+    assert graph.factor_graph().size() == n_committed  # ... with every committed factor
+    monkeypatch.setattr(batch_solve, "solve_batch", real)
+    assert graph.solve()["batch"]  # the pending keyframe and loop go in now, in a batch re-solve
+    assert graph.n_keyframes == 11 and graph.loop_pairs() == {(kfs[0].kf_id, kfs[10].kf_id)}
+    assert graph.factor_graph().size() == n_committed + 2  # + the odometry and the loop
+    assert np.allclose(graph.estimate(kfs[10].kf_id), before[kfs[9].kf_id] @ relative_sim3(kfs[9].T_vo_kf, kfs[10].T_vo_kf), atol=1e-3)

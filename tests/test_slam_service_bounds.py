@@ -12,12 +12,14 @@ import threading
 import time
 import zlib
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from metricslam.camera import PinholeCamera
 from metricslam.errors import ServiceError
+from metricslam.slam.events import EventBus, Solved
 from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.types import PoseEstimate, TrackingState
 from metricslam.wire import keys
@@ -249,3 +251,41 @@ def test_the_status_thread_trims_the_heap_every_period_only_when_asked(stack, mo
     start_service(heap_trim_period_s=0.3)
     assert _wait(lambda: len(calls) >= 3, 5.0), calls
     assert min(b - a for a, b in zip(calls, calls[1:])) >= 0.25  # the period, not every status tick
+
+
+class _SessionWithGraphEvents(IdentitySession):
+    """Identity poses, and the event bus a real session's global back end has."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.backend = SimpleNamespace(events=EventBus())
+
+
+def _factory_into(sessions: list) -> object:
+    def factory(camera_id: str, camera: PinholeCamera) -> _SessionWithGraphEvents:
+        sessions.append(_SessionWithGraphEvents())
+        return sessions[-1]
+    return factory
+
+
+def test_a_batch_re_solve_of_the_global_graph_trims_the_heap_at_once(stack, monkeypatch) -> None:
+    """Each accepted loop replaces the graph's ISAM2 (``Solved.batch``): its memory goes back to
+    the OS right then, not at the next periodic trim; incremental solves trim nothing, and with
+    ``SLAM_HEAP_TRIM_PERIOD_S=0`` (no trimming asked for) neither does a batch one."""
+    from metricslam_slam.service import slam_service
+
+    calls: list[float] = []
+    monkeypatch.setattr(slam_service, "trim_heap", lambda: calls.append(time.monotonic()))
+    _, client, start_service = stack
+    for period, expected in ((1000.0, 1), (0.0, 0)):  # 1000 s: no periodic trim within the test
+        sessions: list[_SessionWithGraphEvents] = []
+        svc = start_service(_factory_into(sessions), heap_trim_period_s=period)
+        _publish(client, "cam0", range(2))
+        assert _wait(sessions.__len__, 5.0)
+        calls.clear()
+        bus = sessions[0].backend.events
+        bus.emit(Solved(10, 10, 12, 0, 1.0, batch=False))
+        assert calls == []
+        bus.emit(Solved(11, 11, 13, 0, 80.0, batch=True))
+        assert len(calls) == expected, (period, calls)
+        svc.stop()

@@ -68,6 +68,8 @@ class Solved:
         newest_frame_index: frame index of the newest keyframe in the graph.
         loops_removed: loop factors the solve removed as inconsistent.
         solve_ms: wall time of the solve (ms).
+        batch: the whole graph was re-solved in batch and ISAM2 replaced (a new loop, or a
+            recovery); the old one's memory was freed.
     """
 
     n_keyframes: int
@@ -75,6 +77,7 @@ class Solved:
     newest_frame_index: int
     loops_removed: int
     solve_ms: float
+    batch: bool = False
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,8 @@ class SlamServiceSettings(BaseSettings):
             soak's RSS floor stops rising across roll-overs
             (``bench/results/slam_service_soak_10000.md``).
         heap_trim_period_s: return free heap pages to the OS this often (``malloc_trim``, a few
-            ms, from the status thread); 0: only when a session closes. 10: the 10,000-frame
+            ms, from the status thread), and after each batch re-solve of a global graph (each
+            accepted loop: it frees the old ISAM2); 0: only when a session closes. 10: the 10,000-frame
             soak's peak RSS above warm-up fell by ~20 MiB at the same wall time
             (``bench/results/slam_service_soak_10000.md`` now and at commit f04685c).
         state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a

@@ -22,6 +22,7 @@ import zenoh
 
 from metricslam.errors import CodecError, ServiceError
 from metricslam.slam.config_file import load_system_config
+from metricslam.slam.events import Solved
 from metricslam.slam.system_config import LIVE_PROFILE, SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
@@ -208,6 +209,17 @@ class SlamService:
         self._drop_map(camera_id)
         self._maps[camera_id] = MapPublisher(
             camera_id, session, lambda topic, msg: self._put(camera_id, topic, msg))
+        events = getattr(getattr(session, "backend", None), "events", None)
+        if events is not None and self.settings.heap_trim_period_s > 0:
+            events.subscribe(self._after_solve, Solved)
+
+    @staticmethod
+    def _after_solve(ev: Solved) -> None:
+        """A batch re-solve (each accepted loop) has just freed the old ISAM2 and its own
+        temporaries: return those pages now, not at the next periodic trim (seconds later, after
+        the next allocations have scattered over them)."""
+        if ev.batch:
+            trim_heap()
 
     def _drop_map(self, camera_id: str) -> None:
         old = self._maps.pop(camera_id, None)

@@ -48,6 +48,21 @@ def indeterminate_keyframe(exc: Exception) -> int | None:
     return int(m.group(1)) if m else None
 
 
+def committed_factors(isam: gtsam.ISAM2, corrupt_at: int | None,
+                      kinds: dict[int, object]) -> tuple[gtsam.NonlinearFactorGraph, list]:
+    """The factors ``isam`` holds (only the first ``corrupt_at`` slots, those committed before a
+    failed update, when that is not None; empty slots skipped) and their ``kinds``, in order."""
+    factors = isam.getFactorsUnsafe()
+    n = factors.size() if corrupt_at is None else min(corrupt_at, factors.size())
+    graph, out = gtsam.NonlinearFactorGraph(), []
+    for i in range(n):
+        f = factors.at(i)
+        if f is not None:
+            graph.add(f)
+            out.append(kinds.get(i))
+    return graph, out
+
+
 def solve_batch(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, isam_params: gtsam.ISAM2Params,
                 factorization: str, newest: list[int]) -> tuple[gtsam.ISAM2, object, gtsam.Values, list[int]]:
     """LM on ``graph`` from ``values``, then a fresh ISAM2 holding the graph at the LM result.

@@ -168,7 +168,8 @@ class GlobalEstimator:
                     self._add_loop(cand)
                 self._pending_loops = []
                 res2 = self.graph.solve()
-                res = {**res2, "loops_removed": res["loops_removed"] + res2["loops_removed"]}
+                res = {**res2, "loops_removed": res["loops_removed"] + res2["loops_removed"],
+                       "batch": res["batch"] or res2["batch"]}
         except GraphError as exc:
             log.warning("global solve failed: %s", exc)
             return
@@ -181,7 +182,7 @@ class GlobalEstimator:
         self._hand_over_newest()
         newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
         self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
-                                int(res["loops_removed"]), solve_ms))
+                                int(res["loops_removed"]), solve_ms, bool(res["batch"])))
 
     def issue_warp(self, solved: SolvedPose) -> np.ndarray:
         """``S_new_vo`` (4, 4): maps the current VO frame onto the metric world frame so that the

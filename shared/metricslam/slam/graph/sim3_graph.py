@@ -221,13 +221,14 @@ class GlobalPoseGraph:
         re-check new loops afterwards.
 
         Returns:
-            ``{"loops_removed": n, "iterations": n}``.
+            ``{"loops_removed": n, "iterations": n, "batch": whether ISAM2 was rebuilt}``.
         """
         extra = self.config.extra_iterations if extra_iterations is None else extra_iterations
         kinds = self._pending_kinds
         has_loop = any(isinstance(k, tuple) for k in kinds)
         n_iter = 1
-        if has_loop or self._corrupt_at is not None:
+        batch = has_loop or self._corrupt_at is not None
+        if batch:
             # a loop moves the whole map: one batch LM beats many relinearized updates; after a
             # failed update the ISAM2 object is unusable until a rebuild succeeds
             self._rebuild()
@@ -244,7 +245,7 @@ class GlobalPoseGraph:
                 log.warning("ISAM2 update failed (%s); rebuilding from a batch solve",
                             " ".join(str(exc).split())[:160] or type(exc).__name__)
                 self.n_rebuilds += 1
-                self._corrupt_at = n_committed
+                self._corrupt_at, batch = n_committed, True
                 self._rebuild()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
@@ -253,43 +254,67 @@ class GlobalPoseGraph:
             n_iter += self._iterate(extra, stop_when_converged=False)
         removed = self._reject_inconsistent_loops() if has_loop else 0
         self._refresh_latest(all_keys=has_loop or removed > 0)
-        return {"loops_removed": removed, "iterations": n_iter}
+        return {"loops_removed": removed, "iterations": n_iter, "batch": batch}
 
     def _rebuild(self) -> None:
         """Batch Levenberg-Marquardt on every factor (ISAM2's, only those committed before a
-        failed update, and the pending ones), then a fresh ISAM2 seeded with the result.
-
-        Indeterminate keyframes get weak priors (:func:`.batch_solve.solve_batch`, counted in
+        failed update, and the pending ones), then a fresh ISAM2 seeded with the result. The old
+        ISAM2 goes first: both at once (and the solve's temporaries) were the memory high-water
+        mark of a 1000-keyframe session. Indeterminate keyframes get weak priors (counted in
         ``n_stabilized``); a state that cannot be rebuilt at all raises :class:`GraphError` and
-        leaves this graph as it was before the call (pending factors kept)."""
-        old_factors = self._isam.getFactorsUnsafe()
-        n_old = old_factors.size() if self._corrupt_at is None else min(self._corrupt_at, old_factors.size())
-        graph, kinds = gtsam.NonlinearFactorGraph(), []
-        for i in range(n_old):
-            f = old_factors.at(i)
-            if f is not None:
-                graph.add(f)
-                kinds.append(self._factor_kinds.get(i))
+        leaves the committed factors at their estimate before the call (pending ones kept)."""
+        committed, committed_kinds = batch_solve.committed_factors(self._isam, self._corrupt_at, self._factor_kinds)
+        graph, kinds = gtsam.NonlinearFactorGraph(committed), list(committed_kinds)
         for i in range(self._new_factors.size()):
             graph.add(self._new_factors.at(i))
             kinds.append(self._pending_kinds[i])
-        values = gtsam.Values()
         theta = self._isam.getLinearizationPoint()
+        solved = self._corrupt_at is None and self._isam.size() > 0
+        uncommitted = set(self._uncommitted)
+        values, committed_estimate = gtsam.Values(), gtsam.Values()
         for kf in self._keyframes:
             k = key(kf)
-            values.insert(k, theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf])
-        isam, result, values, stabilized = batch_solve.solve_batch(
-            graph, values, self._params, self.config.factorization, self._uncommitted)
+            guess = theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf]
+            values.insert(k, guess)
+            if kf not in uncommitted:
+                committed_estimate.insert(k, self._isam.calculateEstimateSimilarity3(k) if solved else guess)
+        del theta  # keeps the old ISAM2 alive
+        self._isam = gtsam.ISAM2(self._params)
+        try:
+            isam, result, values, stabilized = batch_solve.solve_batch(
+                graph, values, self._params, self.config.factorization, self._uncommitted)
+        except GraphError:
+            self._restore(committed, committed_kinds, committed_estimate)
+            raise
         kinds.extend(["stabilizer"] * len(stabilized))
         self.n_stabilized += len(stabilized)
-        self._isam, self._corrupt_at, self._uncommitted = isam, None, []
+        self._adopt(isam, result, kinds)
+        self._uncommitted = []
+        for kf in self._keyframes:
+            self._latest[kf] = values.atSimilarity3(key(kf))
+
+    def _adopt(self, isam: gtsam.ISAM2, result: object, kinds: list) -> None:
+        """Make a freshly built ISAM2 this graph's (``kinds``: of its factors, in order)."""
+        self._isam, self._corrupt_at = isam, None
         self._factor_kinds, self._loop_indices = {}, {}
         for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
             self._factor_kinds[idx] = kind
             if isinstance(kind, tuple):
                 self._loop_indices[idx] = kind[1:]
-        for kf in self._keyframes:
-            self._latest[kf] = values.atSimilarity3(key(kf))
+
+    def _restore(self, committed: gtsam.NonlinearFactorGraph, kinds: list, estimate: gtsam.Values) -> None:
+        """After a failed rebuild: a fresh ISAM2 with the committed factors at their estimate.
+        If even that fails, the factors it took in are kept as committed-before-a-failure, for
+        the next rebuild to start from (as after a failed incremental update)."""
+        isam = gtsam.ISAM2(self._params)
+        try:
+            self._adopt(isam, isam.update(committed, estimate), kinds)
+        except RuntimeError as exc:
+            log.warning("the global graph could not be restored after a failed rebuild (%s); the "
+                        "next solve rebuilds it", " ".join(str(exc).split())[:160])
+            self._isam, self._corrupt_at = isam, committed.size()
+            self._factor_kinds = dict(enumerate(kinds))
+            self._loop_indices = {i: k[1:] for i, k in enumerate(kinds) if isinstance(k, tuple)}
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
         """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
