@@ -180,7 +180,7 @@ class SlamService:
             camera_id, self._factory, lambda topic, msg: self._put(camera_id, topic, msg),
             self.config.queues.frames, self.settings.keyframe_images, self._on_estimate,
             prior_poses=lambda: self._cameras.prior_poses(camera_id),
-            on_session=lambda session: self._attach_map(camera_id, session),
+            on_session=lambda session: self._on_new_session(camera_id, session),
             on_event=lambda event, detail: self._cameras.publish_event(worker, event, detail),
             max_session_keyframes=self.settings.max_session_keyframes)
         return worker
@@ -203,15 +203,18 @@ class SlamService:
     def _serves(self, camera_id: str) -> bool:
         return self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame")))
 
+    def _on_new_session(self, camera_id: str, session: object) -> None:
+        self._attach_map(camera_id, session)
+        events = getattr(getattr(session, "backend", None), "events", None)
+        if events is not None and self.settings.heap_trim_period_s > 0:
+            events.subscribe(self._after_solve, Solved)
+
     def _attach_map(self, camera_id: str, session: object) -> None:
         """Each new session of a camera gets a :class:`MapPublisher` (path, landmarks and
         keyframe depth of that camera), replacing the one of its previous session."""
         self._drop_map(camera_id)
         self._maps[camera_id] = MapPublisher(
             camera_id, session, lambda topic, msg: self._put(camera_id, topic, msg))
-        events = getattr(getattr(session, "backend", None), "events", None)
-        if events is not None and self.settings.heap_trim_period_s > 0:
-            events.subscribe(self._after_solve, Solved)
 
     @staticmethod
     def _after_solve(ev: Solved) -> None:

@@ -288,16 +288,16 @@ class GlobalPoseGraph:
             raise
         kinds.extend(["stabilizer"] * len(stabilized))
         self.n_stabilized += len(stabilized)
-        self._adopt(isam, result, kinds)
+        self._adopt(isam, result.getNewFactorsIndices(), kinds)
         self._uncommitted = []
         for kf in self._keyframes:
             self._latest[kf] = values.atSimilarity3(key(kf))
 
-    def _adopt(self, isam: gtsam.ISAM2, result: object, kinds: list) -> None:
-        """Make a freshly built ISAM2 this graph's (``kinds``: of its factors, in order)."""
-        self._isam, self._corrupt_at = isam, None
+    def _adopt(self, isam: gtsam.ISAM2, indices: object, kinds: list, corrupt_at: int | None = None) -> None:
+        """Make a freshly built ISAM2 this graph's (``kinds``: of its factors at ``indices``)."""
+        self._isam, self._corrupt_at = isam, corrupt_at
         self._factor_kinds, self._loop_indices = {}, {}
-        for idx, kind in zip(list(result.getNewFactorsIndices()), kinds):
+        for idx, kind in zip(list(indices), kinds):
             self._factor_kinds[idx] = kind
             if isinstance(kind, tuple):
                 self._loop_indices[idx] = kind[1:]
@@ -308,13 +308,11 @@ class GlobalPoseGraph:
         the next rebuild to start from (as after a failed incremental update)."""
         isam = gtsam.ISAM2(self._params)
         try:
-            self._adopt(isam, isam.update(committed, estimate), kinds)
+            self._adopt(isam, isam.update(committed, estimate).getNewFactorsIndices(), kinds)
         except RuntimeError as exc:
             log.warning("the global graph could not be restored after a failed rebuild (%s); the "
                         "next solve rebuilds it", " ".join(str(exc).split())[:160])
-            self._isam, self._corrupt_at = isam, committed.size()
-            self._factor_kinds = dict(enumerate(kinds))
-            self._loop_indices = {i: k[1:] for i, k in enumerate(kinds) if isinstance(k, tuple)}
+            self._adopt(isam, range(committed.size()), kinds, corrupt_at=committed.size())
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
         """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
