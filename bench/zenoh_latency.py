@@ -36,6 +36,8 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
     """Publish ``frames`` (list of Frame) at ``rate_hz``; latency stats and drops."""
     recorder = PoseRecorder(session, camera_id)
     publisher = FramePublisher(session, camera_id, block=True)
+    if not publisher.wait_for_subscriber(10):
+        raise SystemExit(f"no SLAM service subscribed to {camera_id}'s frames within 10 s")
     sent_ns: dict[int, int] = {}
     t0 = time.monotonic()
     for k, frame in enumerate(frames):

@@ -156,6 +156,7 @@ def test_poses_records_a_live_mcap(synth_sequence, tmp_path: Path) -> None:
         assert rec.stdout.readline().startswith("recording")
         time.sleep(0.5)  # its subscriptions reach the service through the router
         pub = FramePublisher(client, "synth")
+        assert pub.wait_for_subscriber(10)
         for i in range(n):
             frame = seq[i]
             pub.publish(i, frame.t_ns, frame.image, frame.camera)

@@ -237,6 +237,7 @@ def test_odometry_over_zenoh_for_a_published_frame(ros_stack) -> None:
     got = _subscribe(client, key)
     time.sleep(0.3)  # the subscription reaches the service through the router
     pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
     pub.publish(0, 1_500_000_000, np.zeros((48, 64), np.uint8), CAMERA)
     assert _wait(lambda: len(got) > 1), "no Odometry on the rmw_zenoh key"
     key_expr, payload, att = got[1]

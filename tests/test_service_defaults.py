@@ -103,6 +103,7 @@ def test_bare_depth_and_slam_services_find_each_other(synth_sequence, tmp_path) 
             time.sleep(0.1)
         recorder = PoseRecorder(client, "cam0")
         publisher = FramePublisher(client, "cam0")
+        assert publisher.wait_for_subscriber(10)
         for i in range(len(seq)):  # lock step: the queue never drops a frame
             frame = seq[i]
             publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)
@@ -144,6 +145,7 @@ def test_dead_depth_url_is_logged_once_reported_and_counted(caplog) -> None:
         deadline = time.monotonic() + 10
         while query_health(client, 0.5) is None and time.monotonic() < deadline:
             time.sleep(0.05)
+        assert publisher.wait_for_subscriber(10)
         for i in range(5):
             publisher.publish(i, i, np.full((48, 64), 40 * i, np.uint8), camera)
         assert recorder.wait_frames(5, 10)  # tracking goes on without depth

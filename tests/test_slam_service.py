@@ -79,6 +79,7 @@ def test_pose_for_every_frame_status_and_trajectory(stack) -> None:
     start_service()
     recorder = PoseRecorder(client, "cam0")
     pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
     n = 30
     for i in range(n):
         pub.publish(i, i * 100_000_000, _image(i), CAMERA)
@@ -115,6 +116,7 @@ def test_two_cameras_get_separate_sessions(stack) -> None:
     start_service(factory)
     recs = {cid: PoseRecorder(client, cid) for cid in ("left", "right")}
     pubs = {cid: FramePublisher(client, cid) for cid in ("left", "right")}
+    assert all(pub.wait_for_subscriber(10) for pub in pubs.values())
     for i in range(10):
         for cid in pubs:
             pubs[cid].publish(i, i, _image(i), CAMERA)
@@ -129,6 +131,7 @@ def test_malformed_frames_are_counted_and_dropped(stack) -> None:
     svc = start_service()
     recorder = PoseRecorder(client, "cam0")
     pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
     good = encode(FrameMessage(camera_id="cam0", frame_index=0, t_ns=0, camera=CAMERA, image=_image(0)))
     wrong_camera = encode(FrameMessage(camera_id="other", frame_index=0, t_ns=0, camera=CAMERA, image=_image(0)))
     bad = [b"", b"garbage" * 10, b"XXXX" + good[4:], good[:-10], good[:8] + b"[" + good[9:],
@@ -156,6 +159,7 @@ def test_bounded_queue_drops_oldest_and_counts(stack) -> None:
     start_service(lambda cid, cam: SlowSession(0.05), queue_size=2)
     recorder = PoseRecorder(client, "cam0")
     pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
     n = 30
     for i in range(n):
         pub.publish(i, i, _image(i), CAMERA)
@@ -175,6 +179,7 @@ def test_cameras_partitioned_across_workers(stack) -> None:
     recs = {cid: PoseRecorder(client, cid) for cid in ("fleet-a-1", "fleet-b-1")}
     for cid in recs:
         pub = FramePublisher(client, cid)
+        assert pub.wait_for_subscriber(10)
         for i in range(5):
             pub.publish(i, i, _image(i), CAMERA)
         pub.close()

@@ -83,9 +83,9 @@ def _wait(predicate, timeout_s: float) -> bool:
     return True
 
 
-def _publish(client, camera_id: str, indices, settle_s: float = 0.0) -> None:
+def _publish(client, camera_id: str, indices) -> None:
     pub = FramePublisher(client, camera_id)
-    time.sleep(settle_s)  # a new publisher drops puts until it has heard of a subscriber
+    assert pub.wait_for_subscriber(10), "no SLAM service subscribed to the frames"
     for i in indices:
         pub.publish(i, i * 100_000_000, IMAGE, CAMERA)
     pub.close()
@@ -220,7 +220,7 @@ def test_killed_service_continues_its_cameras(tmp_path: Path) -> None:
             LineReader(proc).wait("READY", 60)
             assert _wait(lambda: query_health(client, 0.5) is not None, 10)
             time.sleep(1.0)  # until the new service has heard of the recorder's subscriptions
-            _publish(client, "cam0", frames, settle_s=0.5)
+            _publish(client, "cam0", frames)
             assert _wait(lambda n=frames.stop: len(_trajectory_or_none(client)) == n, 20), sorted(recorder.poses)
             if run == 0:
                 proc.kill()  # no clean shutdown: only the appended lines survive

@@ -38,6 +38,7 @@ def test_rerun_recording_has_the_entities(shared_data: Path, tmp_path: Path) -> 
             time.sleep(0.05)
         recorder = PoseRecorder(client, "kitti06")
         publisher = FramePublisher(client, "kitti06")
+        assert publisher.wait_for_subscriber(10)
         for i in range(n):
             frame = seq[i]
             publisher.publish(frame.index, frame.t_ns, frame.image, frame.camera)

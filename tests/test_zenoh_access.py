@@ -93,7 +93,7 @@ def test_only_the_slam_user_publishes_poses(guarded_router, monkeypatch) -> None
             time.sleep(0.05)
         recorder = PoseRecorder(viewer, "cam0")
         publisher = FramePublisher(camera, "cam0")
-        time.sleep(0.3)
+        assert publisher.wait_for_subscriber(10)
         for i in range(3):
             publisher.publish(i, i, np.zeros((48, 64), np.uint8), CAMERA)
         assert recorder.wait_frames(3, 10)  # frames from the camera user, poses from the slam user

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
             wait_for_service(session, args.wait, args.zenoh_endpoint)
         report = replay_sequence(session, seq, args.camera_id, args.rate, args.start, stop,
                                  args.max_in_flight, progress=not args.no_progress,
-                                 confirm_timeout_s=args.confirm_timeout)
+                                 confirm_timeout_s=args.confirm_timeout, subscriber_timeout_s=args.wait)
     finally:
         session.close()
     if not report.complete and not args.allow_loss:

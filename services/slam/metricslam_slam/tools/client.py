@@ -31,6 +31,20 @@ class FramePublisher:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._publisher = session.declare_publisher(keys.key(camera_id, "frame"), congestion_control=cc)
 
+    def wait_for_subscriber(self, timeout_s: float) -> bool:
+        """Wait until zenoh knows a subscriber of this camera's frames (a SLAM service).
+
+        A publisher declared just now drops its puts until the router has told it of a matching
+        subscriber, which takes milliseconds on an idle machine and seconds on a loaded one.
+        Returns False if none is known after ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while not self._publisher.matching_status.matching:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
     def publish(self, frame_index: int, t_ns: int, image: np.ndarray, camera: PinholeCamera) -> int:
         """Send one frame; returns the send time (``time.perf_counter_ns``) for latency bookkeeping."""
         message = FrameMessage(camera_id=self.camera_id, frame_index=frame_index, t_ns=t_ns,

@@ -77,7 +77,7 @@ def wait_for_service(session: zenoh.Session, timeout_s: float, endpoint: str = "
 def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam0",
                     rate_hz: float = 10.0, start: int = 0, stop: int | None = None,
                     max_in_flight: int = 0, progress: bool = True,
-                    confirm_timeout_s: float = 10.0) -> ReplayReport:
+                    confirm_timeout_s: float = 10.0, subscriber_timeout_s: float = 10.0) -> ReplayReport:
     """Publish frames ``start..stop-1`` at ``rate_hz`` (0 = as fast as possible) and count the
     service's confirmations (module docstring).
 
@@ -86,7 +86,9 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     progress back-pressure is switched off, so dropped frames or a dead service cannot stall the
     replay. A frame whose image cannot be read is logged and published black, which the SLAM
     service treats as an invalid frame. After the last frame, waits for the missing poses until
-    none arrived for ``confirm_timeout_s`` (0: report what arrived by then).
+    none arrived for ``confirm_timeout_s`` (0: report what arrived by then). Before the first
+    frame, waits up to ``subscriber_timeout_s`` until zenoh knows the service's subscription: a
+    fresh publisher drops puts until then (seconds on a loaded machine).
     """
     from tqdm import tqdm
 
@@ -98,6 +100,9 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     frames = FrameReader(seq)
     publisher = FramePublisher(session, camera_id, block=True)
     recorder = PoseRecorder(session, camera_id)  # before the first frame: no pose is missed
+    if subscriber_timeout_s > 0 and not publisher.wait_for_subscriber(subscriber_timeout_s):
+        log.warning("no subscriber of %s's frames known after %.0f s: frames may be lost (counted "
+                    "below)", camera_id, subscriber_timeout_s)
     back_pressure = max_in_flight > 0
     period_s = 0.0 if rate_hz == 0 else 1.0 / rate_hz
     t_start = time.monotonic()

@@ -67,18 +67,20 @@ def soak(session: zenoh.Session, seq_dir: str | Path, camera_id: str, frames: in
     images = [seq[i] for i in range(len(seq))]
     recorder = PoseRecorder(session, camera_id)
     publisher = FramePublisher(session, camera_id)
-    time.sleep(0.5)  # a new publisher drops puts until it has heard of the subscriber
     samples: list[tuple[int, float]] = []
     order = ping_pong(len(images))
     t0 = time.monotonic()
     try:
+        if not publisher.wait_for_subscriber(pose_timeout_s):
+            raise ServiceError(f"no SLAM service subscribed to {camera_id}'s frames within "
+                               f"{pose_timeout_s:.0f} s")
         for k in range(frames):
-            recorder.wait_frames(k - max_in_flight + 1, pose_timeout_s)
+            _wait_poses(recorder, k - max_in_flight + 1, pose_timeout_s)
             frame = images[next(order)]
             publisher.publish(k, k * FRAME_PERIOD_NS, frame.image, frame.camera)
             if k % sample_every == 0:
                 samples.append((k, round(rss_mib(service_pid), 1)))
-        recorder.wait_frames(frames, pose_timeout_s)
+        _wait_poses(recorder, frames, pose_timeout_s)
         samples.append((frames, round(rss_mib(service_pid), 1)))
         states = [p.state.value for p in recorder.poses.values()]
         status = recorder.latest_status()
@@ -90,6 +92,20 @@ def soak(session: zenoh.Session, seq_dir: str | Path, camera_id: str, frames: in
     finally:
         publisher.close()
         recorder.close()
+
+
+def _wait_poses(recorder: PoseRecorder, n_frames: int, timeout_s: float) -> None:
+    """Lock step: poses of frames ``0..n_frames-1`` have arrived, or the soak stops with the reason
+    (a lost frame would otherwise cost ``timeout_s`` on every frame after it)."""
+    if recorder.wait_frames(n_frames, timeout_s):
+        return
+    missing = sorted(set(range(n_frames)) - recorder.received_frames())
+    status = recorder.latest_status()
+    counts = "no status yet" if status is None else (
+        f"status: {status.frames_received} received, {status.frames_processed} processed, "
+        f"{status.queue_drops} dropped from a full queue")
+    raise ServiceError(f"no pose for {len(missing)} of the first {n_frames} frames after "
+                       f"{timeout_s:.0f} s (frames {missing[:10]}); {counts}")
 
 
 def growth_mib_per_1000_frames(samples: list[tuple[int, float]], after_frame: int = 0) -> float:
