@@ -7,6 +7,7 @@ a full queue would."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -17,11 +18,14 @@ import cv2
 import numpy as np
 import pytest
 
+from metricslam.errors import ServiceError
 from metricslam.slam.types import TrackingState
 from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, PoseMessage, StatusMessage, decode_as, encode
 from metricslam_slam.supervisor.launcher import free_port
 from metricslam_slam.supervisor.router import open_router
+from metricslam_slam.tools.client import FramePublisher
+from metricslam_slam.tools.soak import soak
 from metricslam_slam.zenoh_config import open_client
 
 CLI = [sys.executable, "-m", "metricslam_cli.main"]
@@ -113,3 +117,43 @@ def test_replay_exits_zero_when_every_frame_is_confirmed(router_endpoint, folder
         service.close()
     assert out.returncode == 0, out.stdout + out.stderr
     assert f"sent {N_FRAMES} frames" in out.stdout and f"confirmed {N_FRAMES} " in out.stdout, out.stdout
+
+
+def test_a_frame_publisher_knows_when_a_service_subscribes(router_endpoint) -> None:
+    """``wait_for_subscriber`` is zenoh's matching status: false with no SLAM service on the
+    router, true once one subscribes (the puts before that would have been dropped)."""
+    client = open_client(router_endpoint)
+    publisher = FramePublisher(client, "cam0")
+    try:
+        assert publisher.wait_for_subscriber(0.3) is False
+        service = DroppingService(router_endpoint, keep=lambda i: True)
+        try:
+            assert publisher.wait_for_subscriber(10) is True
+        finally:
+            service.close()
+    finally:
+        publisher.close()
+        client.close()
+
+
+@pytest.mark.parametrize("with_service", [False, True])
+def test_a_soak_stops_with_the_reason_instead_of_waiting_out_every_frame(router_endpoint, folder,
+                                                                         with_service) -> None:
+    """No service: the soak says so at once. A service that loses frame 3: the soak stops after
+    one pose timeout, naming the frame and the service's counters (it used to wait the timeout on
+    every later frame, past pytest's limit)."""
+    service = DroppingService(router_endpoint, keep=lambda i: i != 3) if with_service else None
+    client = open_client(router_endpoint)
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(ServiceError) as err:
+            soak(client, folder, "cam0", 40, os.getpid(), pose_timeout_s=1.0)
+    finally:
+        client.close()
+        if service is not None:
+            service.close()
+    assert time.monotonic() - t0 < 10
+    if with_service:
+        assert "frames [3]" in str(err.value) and "dropped from a full queue" in str(err.value)
+    else:
+        assert "no SLAM service subscribed" in str(err.value)
