@@ -4,7 +4,8 @@ Example::
 
     metricslam replay ../shared/data/kitti_odometry/sequences/06 --zenoh-endpoint tcp/127.0.0.1:7447 --rate 10
 
-Waits (``--wait``) until a SLAM service answers so no frame is published into the void, then
+Waits (``--wait``) until a SLAM service answers and zenoh knows its frame subscription (a fresh
+publisher drops frames until then), so no frame is published into the void, then
 publishes every frame on ``metricslam/<camera_id>/frame`` (reliable, blocking congestion
 control) with a progress bar, then counts the frames the SLAM service confirmed (a pose each,
 waiting up to ``--confirm-timeout`` seconds without news for the last ones) and prints
@@ -40,7 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="back-pressure: publish frame i only once poses of all but N earlier "
                    "frames arrived (0: off, a pure fixed-rate stream)")
     p.add_argument("--wait", type=float, default=30.0, metavar="S",
-                   help="seconds to wait for a SLAM service before giving up (0: do not wait)")
+                   help="seconds to wait for a SLAM service to answer (then give up) and for zenoh to "
+                        "know its frame subscription (then warn; 0: do not wait)")
     p.add_argument("--confirm-timeout", type=float, default=10.0, metavar="S",
                    help="after the last frame, wait for missing poses until none arrived for S "
                         "seconds (default 10; 0: count what arrived by then)")
