@@ -22,6 +22,12 @@ from metricslam.wire.codec import (
 from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
 
 
+def describe_counters(status: StatusMessage) -> str:
+    """The frame counters of a camera's ``…/status`` in words (counted since its session started)."""
+    return (f"{status.frames_received} received, {status.frames_processed} processed, "
+            f"{status.queue_drops} dropped from a full queue, {status.malformed} malformed")
+
+
 class FramePublisher:
     """Publishes one camera's frames. ``block=True`` (replay) never drops in the transport;
     ``block=False`` (live camera) lets zenoh drop under congestion."""

@@ -21,7 +21,7 @@ from metricslam.datasets.base import Sequence
 from metricslam.datasets.frame_reader import FrameReader
 from metricslam.errors import ConfigError, ServiceError
 from metricslam.wire.codec import StatusMessage
-from metricslam_slam.tools.client import FramePublisher, PoseRecorder, query_health
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, describe_counters, query_health
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +58,7 @@ class ReplayReport:
             text += f"; {len(self.missing)} without a pose: frames {self.missing[:10]}{more}"
         st = self.status
         if st is not None and self.missing:
-            text += (f"; its status: {st.frames_received} received, {st.frames_processed} processed, "
-                     f"{st.queue_drops} dropped from a full queue, {st.malformed} malformed "
-                     "(counted since its session started)")
+            text += f"; its status: {describe_counters(st)} (counted since its session started)"
         return text
 
 

@@ -24,7 +24,7 @@ import zenoh
 
 from metricslam.datasets import open_sequence
 from metricslam.errors import ServiceError
-from metricslam_slam.tools.client import FramePublisher, PoseRecorder
+from metricslam_slam.tools.client import FramePublisher, PoseRecorder, describe_counters
 
 FRAME_PERIOD_NS = 100_000_000  # timestamps as from a 10 Hz camera
 
@@ -101,9 +101,7 @@ def _wait_poses(recorder: PoseRecorder, n_frames: int, timeout_s: float) -> None
         return
     missing = sorted(set(range(n_frames)) - recorder.received_frames())
     status = recorder.latest_status()
-    counts = "no status yet" if status is None else (
-        f"status: {status.frames_received} received, {status.frames_processed} processed, "
-        f"{status.queue_drops} dropped from a full queue")
+    counts = "no status yet" if status is None else f"status: {describe_counters(status)}"
     raise ServiceError(f"no pose for {len(missing)} of the first {n_frames} frames after "
                        f"{timeout_s:.0f} s (frames {missing[:10]}); {counts}")
 

@@ -270,6 +270,7 @@ class GlobalPoseGraph:
             kinds.append(self._pending_kinds[i])
         theta = self._isam.getLinearizationPoint()
         solved = self._corrupt_at is None and self._isam.size() > 0
+        estimate = self._isam.calculateEstimate() if solved else None  # kept for a failed rebuild
         uncommitted = set(self._uncommitted)
         values, committed_estimate = gtsam.Values(), gtsam.Values()
         for kf in self._keyframes:
@@ -277,8 +278,8 @@ class GlobalPoseGraph:
             guess = theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf]
             values.insert(k, guess)
             if kf not in uncommitted:
-                committed_estimate.insert(k, self._isam.calculateEstimateSimilarity3(k) if solved else guess)
-        del theta  # keeps the old ISAM2 alive
+                committed_estimate.insert(k, estimate.atSimilarity3(k) if solved else guess)
+        del theta, estimate  # theta would keep the old ISAM2 alive; estimate is copied above
         self._isam = gtsam.ISAM2(self._params)
         try:
             isam, result, values, stabilized = batch_solve.solve_batch(
