@@ -27,13 +27,13 @@ def kitti_calib_text(fx=FX, baseline=B) -> str:
     return f"P0: {fmt(P0)}\nP1: {fmt(P1)}\nP2: {fmt(P0)}\nP3: {fmt(P1)}\nTr: {fmt(P0)}\n"
 
 
-def make_kitti(root: Path, n: int = 5, depth: bool = True) -> Path:
-    """root/sequences/00 with images, calib, times, depth; poses at root/poses/00.txt."""
+def make_kitti(root: Path, n: int = 5, depth: bool = True, ext: str = ".png") -> Path:
+    """root/sequences/00 with images (``ext``), calib, times, depth; poses at root/poses/00.txt."""
     seq = root / "sequences" / "00"
     for cam in ("image_0", "image_1"):
         (seq / cam).mkdir(parents=True)
         for i in range(n):
-            cv2.imwrite(str(seq / cam / f"{i:06d}.png"), gray(i + (cam == "image_1")))
+            cv2.imwrite(str(seq / cam / f"{i:06d}{ext}"), gray(i + (cam == "image_1")))
     if depth:
         (seq / "depth_0").mkdir()
         for i in range(n):
@@ -65,6 +65,19 @@ def test_kitti_reads_everything(tmp_path):
     assert s[-1].index == 4 and len(list(s)) == 5
     with pytest.raises(IndexError):
         s[5]
+
+
+def test_kitti_reads_jpeg_frames_with_png_depth(tmp_path):
+    """A KITTI-layout drive stored as JPEG (the residential_1405 drive of ../shared/data) loads like
+    a PNG one; its depth maps stay uint16 PNG beside the JPEG frames."""
+    seq = make_kitti(tmp_path, ext=".jpg")
+    s = KittiOdometry(seq)
+    assert len(s) == 5 and s.baseline_m == pytest.approx(B)
+    assert [p.suffix for p in s.image_paths] == [".jpg"] * 5
+    f = s[2]
+    assert f.image.shape == (H, W) and f.image_right.shape == (H, W)
+    assert np.abs(f.image.astype(int) - gray(2).astype(int)).mean() < 8  # lossy, but the same image
+    assert f.depth_m[5, 7] == pytest.approx(3.5)
 
 
 def test_kitti_optional_parts(tmp_path):

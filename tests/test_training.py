@@ -18,13 +18,14 @@ from metricslam_train.data import StereoPairs, build_cache, read_stereo_sequence
 from metricslam_train.network import PyramidDepthNet  # noqa: E402
 from tests.training_images import SHIFT_PX, H, W, texture as _texture  # noqa: E402
 
-def _write_kitti_folder(root, n: int = 3, h: int = 2 * H, w: int = 2 * W, shift_px: int = 2 * SHIFT_PX):
+def _write_kitti_folder(root, n: int = 3, h: int = 2 * H, w: int = 2 * W, shift_px: int = 2 * SHIFT_PX,
+                        ext: str = ".png"):
     for sub in ("image_0", "image_1"):
         (root / sub).mkdir(parents=True)
     for i in range(n):
         wide = (_texture(h, w + shift_px, seed=i) * 255).astype(np.uint8)
-        cv2.imwrite(str(root / "image_0" / f"{i:06d}.png"), wide[:, :w])
-        cv2.imwrite(str(root / "image_1" / f"{i:06d}.png"), wide[:, shift_px:shift_px + w])
+        cv2.imwrite(str(root / "image_0" / f"{i:06d}{ext}"), wide[:, :w])
+        cv2.imwrite(str(root / "image_1" / f"{i:06d}{ext}"), wide[:, shift_px:shift_px + w])
     fx, b = 200.0, 0.5
     p0 = f"{fx} 0 {w / 2} 0 0 {fx} {h / 2} 0 0 0 1 0"
     p1 = f"{fx} 0 {w / 2} {-fx * b} 0 {fx} {h / 2} 0 0 0 1 0"
@@ -43,6 +44,20 @@ def test_cache_holds_block_matching_disparity_as_width_fraction(tmp_path):
     assert valid.numel() > 0.3 * H * W
     assert float(valid.median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
     assert float(bm_right[bm_right > 0].median()) == pytest.approx(SHIFT_PX / W, rel=0.05)
+
+
+def test_jpeg_pairs_are_training_data_like_png_pairs(tmp_path):
+    """A stereo drive stored as JPEG (quality 95 here) caches the same disparity as its PNG twin."""
+    png = read_stereo_sequence(_write_kitti_folder(tmp_path / "png"))
+    jpg = read_stereo_sequence(_write_kitti_folder(tmp_path / "jpg", ext=".jpg"))
+    assert [p.suffix for p in jpg.left_paths] == [".jpg"] * 3 and len(jpg.right_paths) == 3
+    medians = []
+    for seq, name in ((png, "p.npz"), (jpg, "j.npz")):
+        cache = build_cache(seq, tmp_path / name, train_baseline_m=0.5, height=H, width=W, num_disparities=32)
+        bm_left = StereoPairs([cache])[0][2]
+        medians.append(float(bm_left[bm_left > 0].median()))
+    assert medians[1] == pytest.approx(medians[0], rel=0.02)
+    assert medians[1] == pytest.approx(SHIFT_PX / W, rel=0.05)
 
 
 def test_a_measured_disparity_offset_is_removed_before_caching(tmp_path):
@@ -142,6 +157,30 @@ def test_training_resumes_and_exports(tmp_path):
     assert model.contract == contract
     assert "seq" in contract.training_data and contract.baseline_m == 0.5
     assert model.predict_d_frac([np.zeros((50, 70), np.uint8)]).shape == (1, H // 8, W // 8)
+
+
+def test_an_ensemble_of_checkpoints_exports_the_mean_of_their_outputs(tmp_path):
+    """Two seeds -> one ONNX graph, one contract; its output is the mean of the members' outputs."""
+    from metricslam.depth import DepthModel
+    from metricslam_train.export import export_checkpoint, export_ensemble
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    a = train(_config(tmp_path, steps=2, seed=1, run_dir=str(tmp_path / "a")), progress=False)
+    b = train(_config(tmp_path, steps=2, seed=2, lr=5e-2, run_dir=str(tmp_path / "b")), progress=False)
+    export_checkpoint(a, tmp_path / "a.onnx")
+    export_checkpoint(b, tmp_path / "b.onnx")
+    contract = export_ensemble([a, b], tmp_path / "ab.onnx")
+    images = [(_texture(50, 70, seed=s) * 255).astype(np.uint8) for s in (5, 6)]
+    d_a, d_b, d_ab = (DepthModel.load(tmp_path / f"{n}.onnx").predict_d_frac(images) for n in ("a", "b", "ab"))
+    assert not np.allclose(d_a, d_b)  # the members differ, so the mean is a real test
+    assert np.allclose(d_ab, (d_a + d_b) / 2, rtol=1e-5, atol=1e-7)
+    single = DepthModel.load(tmp_path / "a.onnx").contract
+    assert contract.params == 2 * single.params and contract.input_width == single.input_width
+    assert DepthModel.load(tmp_path / "ab.onnx").contract == contract
+    other = train(_config(tmp_path, steps=1, train_baseline_m=0.3, run_dir=str(tmp_path / "c")), progress=False)
+    with pytest.raises(TrainingError, match="one contract"):
+        export_ensemble([a, other], tmp_path / "bad.onnx")
 
 
 def test_config_rejects_stale_keys(tmp_path):

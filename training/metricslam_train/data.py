@@ -31,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from metricslam.datasets._common import IMAGE_EXTS
 from metricslam.depth.canonical import PAD_VALUE_U8
 from metricslam.errors import TrainingError
 from metricslam.stereo import block_matching_pair
@@ -75,12 +76,13 @@ def read_stereo_sequence(folder: str | Path, frame_step: int = 1) -> StereoSeque
     baseline_m = float(-P1[0, 3] / P1[0, 0])
     if not baseline_m > 0:
         raise TrainingError(f"{root}: P1 gives baseline {baseline_m} m; expected the right camera at +x")
-    lefts = sorted((root / "image_0").glob("*.png"))
+    lefts = sorted(p for p in (root / "image_0").glob("*") if p.suffix.lower() in IMAGE_EXTS)
     rights = [root / "image_1" / p.name for p in lefts]
     if not lefts or not all(p.is_file() for p in rights):
-        raise TrainingError(f"{root}: needs matching image_0/*.png and image_1/*.png")
+        raise TrainingError(f"{root}: needs matching image_0/ and image_1/ frames "
+                            f"({'/'.join(IMAGE_EXTS)}, same names)")
     lefts, rights = lefts[::frame_step], rights[::frame_step]
-    depths = [root / "depth_0" / p.name for p in lefts]
+    depths = [root / "depth_0" / (p.stem + ".png") for p in lefts]
     depths = depths if all(p.is_file() for p in depths) else []
     name = root.name if not re.fullmatch(r"\d+", root.name) else f"kitti{root.name}"
     return StereoSequence(name, tuple(lefts), tuple(rights), fx_px, baseline_m, tuple(depths))

@@ -19,7 +19,7 @@ import torch
 
 from metricslam.depth.contract import CANONICAL_CONTRACT_VERSION, ModelContract, Normalization
 from metricslam.errors import TrainingError
-from metricslam_train.network import ExportWrapper, PyramidDepthNet, count_parameters
+from metricslam_train.network import EnsembleExportWrapper, ExportWrapper, PyramidDepthNet, count_parameters
 
 OPSET = 17
 
@@ -108,11 +108,15 @@ def contract_for(net: PyramidDepthNet, meta: dict, model_id: str | None = None) 
     )
 
 
-def export_onnx(net: PyramidDepthNet, contract: ModelContract, out_path: str | Path) -> Path:
-    """Write ``net`` to ``out_path`` as ONNX with ``contract`` in ``metadata_props``."""
+def export_onnx(net: PyramidDepthNet | list[PyramidDepthNet], contract: ModelContract, out_path: str | Path) -> Path:
+    """Write ``net`` (or, given a list, the mean of the networks' outputs: an ensemble) to
+    ``out_path`` as ONNX with ``contract`` in ``metadata_props``."""
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    wrapper = ExportWrapper(net.eval())
+    if isinstance(net, list):
+        wrapper = EnsembleExportWrapper([n.eval() for n in net])
+    else:
+        wrapper = ExportWrapper(net.eval())
     dummy = torch.zeros(1, contract.input_channels, contract.input_height, contract.input_width)
     with torch.no_grad():
         torch.onnx.export(
@@ -138,4 +142,35 @@ def export_checkpoint(ckpt_path: str | Path, out_path: str | Path, model_id: str
     net = network_from_checkpoint(ckpt, weights)
     contract = contract_for(net, ckpt["meta"], model_id)
     export_onnx(net, contract, out_path)
+    return contract
+
+
+def export_ensemble(ckpt_paths: list[str | Path], out_path: str | Path, model_id: str | None = None,
+                    weights: str = "auto") -> ModelContract:
+    """Several checkpoints of one recipe (e.g. seeds) -> one ONNX graph whose output is the mean of
+    their L3 d_frac (:class:`EnsembleExportWrapper`); returns the contract written.
+
+    The members must agree on everything the contract states (input size, normalization,
+    baseline, output range, camera contract); their training data is recorded once when equal.
+    A single checkpoint is exported as itself.
+    """
+    if len(ckpt_paths) == 1:
+        return export_checkpoint(ckpt_paths[0], out_path, model_id, weights)
+    ckpts = [load_checkpoint(p) for p in ckpt_paths]
+    nets = [network_from_checkpoint(c, weights) for c in ckpts]
+    keys = ("input_height", "input_width", "normalization", "baseline_m", "max_d_frac", "canonical_fx_px",
+            "canonical_fy_px")
+    first = ckpts[0]["meta"]
+    for path, ckpt in zip(ckpt_paths[1:], ckpts[1:]):
+        differs = [k for k in keys if ckpt["meta"].get(k) != first.get(k)]
+        if differs:
+            raise TrainingError(f"{path} differs from {ckpt_paths[0]} in {differs}: ensemble members must share "
+                                "one contract")
+    data = sorted({str(c["meta"]["training_data"]) for c in ckpts})
+    ids = [str(c["meta"].get("model_id", "?")) for c in ckpts]
+    meta = dict(first, training_data=data[0] if len(data) == 1 else " | ".join(data),
+                training_commit=",".join(sorted({str(c["meta"].get("training_commit", "unknown")) for c in ckpts})))
+    contract = contract_for(nets[0], meta, model_id or f"ensemble({'+'.join(ids)})")
+    contract = contract.model_copy(update={"params": sum(count_parameters(n) for n in nets)})
+    export_onnx(nets, contract, out_path)
     return contract

@@ -141,6 +141,24 @@ class ExportWrapper(nn.Module):
         return self.net(image)[0][:, 0]
 
 
+class EnsembleExportWrapper(nn.Module):
+    """Several networks as one ONNX graph: normalized image (B, 1, H, W) -> the arithmetic mean of
+    their left L3 d_frac (B, H/8, W/8). One input, one output: the same contract as one network.
+
+    Averaging seeds of one recipe damps the seed-to-seed spread of the metric level (issue #31);
+    the cost is one forward pass per member.
+    """
+
+    def __init__(self, nets: list[PyramidDepthNet]) -> None:
+        super().__init__()
+        if not nets:
+            raise ValueError("an ensemble needs at least one network")
+        self.nets = nn.ModuleList(nets)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return torch.stack([net(image)[0][:, 0] for net in self.nets], dim=0).mean(dim=0)
+
+
 def count_parameters(net: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in net.parameters() if p.requires_grad)

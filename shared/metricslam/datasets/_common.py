@@ -63,7 +63,11 @@ def image_size(path: Path) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
-def list_images(folder: Path, exts: tuple[str, ...] = (".png", ".jpg", ".jpeg")) -> list[Path]:
+#: extensions of the image files a sequence folder may hold (case-insensitive)
+IMAGE_EXTS: tuple[str, ...] = (".png", ".jpg", ".jpeg")
+
+
+def list_images(folder: Path, exts: tuple[str, ...] = IMAGE_EXTS) -> list[Path]:
     """Image files in ``folder`` sorted by name; raises if the folder is missing or empty."""
     if not folder.is_dir():
         raise DatasetError("image folder does not exist", folder)

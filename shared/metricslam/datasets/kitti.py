@@ -2,8 +2,8 @@
 
 Layout of a sequence folder ``SEQ``::
 
-    SEQ/image_0/000000.png …    left gray images (required)
-    SEQ/image_1/000000.png …    right gray images (optional; stereo)
+    SEQ/image_0/000000.png …    left gray images (required; .png, or .jpg/.jpeg)
+    SEQ/image_1/000000.png …    right gray images (optional; stereo; same names as image_0)
     SEQ/calib.txt               "P0: 12 numbers" … "P3: …" (3x4 projections, row-major)
     SEQ/times.txt               one timestamp in seconds per image (optional: 10 Hz assumed)
     SEQ/depth_0/000000.png …    optional uint16 depth, metres × 256, 0 = none
@@ -121,7 +121,7 @@ class KittiOdometry(FileSequence):
         seq_dir = Path(seq_dir)
         if not seq_dir.is_dir():
             raise DatasetError("KITTI sequence folder does not exist", seq_dir)
-        images = list_images(seq_dir / "image_0", (".png",))
+        images = list_images(seq_dir / "image_0")
         calib_path = seq_dir / "calib.txt"
         calib = read_kitti_calib(calib_path)
         w, h = image_size(images[0])
@@ -148,7 +148,7 @@ class KittiOdometry(FileSequence):
                 )
         depth_paths = None
         if load_depth and (seq_dir / "depth_0").is_dir():
-            depth_paths = _matching(images, seq_dir / "depth_0", required=False)
+            depth_paths = _matching(images, seq_dir / "depth_0", required=False, suffix=".png")
 
         poses = None
         pf = Path(poses_file) if poses_file is not None else find_poses_file(seq_dir)
@@ -168,11 +168,15 @@ class KittiOdometry(FileSequence):
         self.seq_dir = seq_dir
 
 
-def _matching(images: list[Path], folder: Path, required: bool) -> list:
-    """Files in ``folder`` with the same names as ``images`` (None where missing if not required)."""
+def _matching(images: list[Path], folder: Path, required: bool, suffix: str | None = None) -> list:
+    """Files in ``folder`` with the same names as ``images`` (None where missing if not required).
+
+    ``suffix`` replaces the image's extension (depth maps are always ``.png``, even beside JPEG
+    frames); None keeps it (a right ``.jpg`` partners a left ``.jpg``).
+    """
     out = []
     for p in images:
-        q = folder / p.name
+        q = folder / (p.name if suffix is None else p.stem + suffix)
         if not q.is_file():
             if required:
                 raise DatasetError(f"missing {p.name} (every left image needs a partner here)", folder)
