@@ -14,6 +14,7 @@ Sources (all under ``bench/results/``):
 * ``speed.json`` — frames/s of ``metricslam run`` (``bench/speed.py``);
 * ``depth_v3_selection.json`` — how the shipped model was chosen (``bench/select_depth.py``);
 * ``scale_measurements.json`` — what the scale factors consume (``bench/scale_measurements.py``);
+* ``pose_jumps.json`` — live pose jumps vs the continuous odometry stream (``bench/pose_jumps.py``);
 * ``own_rig.json``, ``own_rig_turns.json`` — one non-KITTI rig before and after fine-tuning
   (``bench/own_rig.py``), spliced into ``docs/own_camera.md``.
 """
@@ -277,6 +278,18 @@ def latency_block() -> str:
                       f"machine: {machine}"]) + "\n"
 
 
+def pose_jumps_block(data: dict) -> str:
+    """Issue #32 item 3: the live pose stream's largest jump vs the continuous ``…/odom`` stream's
+    (``bench/pose_jumps.py``)."""
+    from bench.pose_jumps import row
+
+    rows = ["| sequence | true max step | live max step (frame) | live / true | continuous max step (frame) "
+            "| continuous / true | within 2x | optimized unchanged |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    rows += [row(name, r) for name, r in data["sequences"].items()]
+    return "\n".join(rows)
+
+
 def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
@@ -323,6 +336,13 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
+    jumps = _load("pose_jumps.json")
+    if jumps:
+        page += ["## Live pose jumps vs the continuous odometry stream (issue #32)", "",
+                 "Largest frame-to-frame step of the live `…/pose` stream and of the continuous `…/odom` "
+                 "stream (`metricslam run --deterministic --live-out --continuous-out`), against the largest "
+                 "true per-frame motion; `optimized unchanged`: `--out` byte-identical without the streams.",
+                 "", pose_jumps_block(jumps), "", _src("pose_jumps.json", jumps), ""]
     if ft:
         page += ["## Depth v3-ft: the shipped model fine-tuned on real city data, selected on SLAM scale", "",
                  slam_rule_table(ft), "", _src("depth_v3ft_selection.json", ft), ""]

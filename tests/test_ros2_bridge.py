@@ -21,7 +21,10 @@ from metricslam.ros2.typestore import (
     CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, dds_type_name, deserialize, serialize, type_hash,
 )
 from metricslam.slam.system_config import SystemConfig
-from metricslam_slam.service.ros2_bridge import UNKNOWN_VARIANCE, odometry_covariances
+from metricslam.slam.types import ScaleState
+from metricslam_slam.service.ros2_bridge import (
+    PROVISIONAL_VARIANCE, UNKNOWN_VARIANCE, odometry_covariances, scale_state_from_covariance,
+)
 from metricslam_slam.service.settings import SlamServiceSettings
 from metricslam_slam.service.slam_service import SlamService
 from metricslam_slam.supervisor.router import open_router
@@ -141,8 +144,28 @@ def test_odometry_decodes_with_an_independent_reader() -> None:
 def test_odometry_covariance_is_nominal_and_says_when_scale_is_unknown() -> None:
     cov, twist = odometry_covariances(True, 0.5, 0.02)
     np.testing.assert_allclose(np.diag(cov), [0.25] * 3 + [0.0004] * 3)
-    cov, _ = odometry_covariances(False, 0.5, 0.02)
-    assert np.all(np.diag(cov)[:3] == UNKNOWN_VARIANCE) and np.all(np.diag(twist) == UNKNOWN_VARIANCE)
+    cov, twist = odometry_covariances(False, 0.5, 0.02)
+    assert np.all(np.diag(cov)[:3] == UNKNOWN_VARIANCE) and np.all(np.diag(twist)[:3] == UNKNOWN_VARIANCE)
+    cov, twist = odometry_covariances(ScaleState.PROVISIONAL, 0.5, 0.02)
+    assert np.all(np.diag(cov)[:3] == PROVISIONAL_VARIANCE) and np.all(np.diag(twist)[:3] == PROVISIONAL_VARIANCE)
+
+
+@pytest.mark.parametrize("state", list(ScaleState))
+def test_scale_state_reads_back_from_the_odometry_covariance(state) -> None:
+    pose_cov, _ = odometry_covariances(state, 0.5, 0.02)
+    r = CdrReader(serialize(messages.odometry(_T(), 0, "w", "c", pose_cov, pose_cov)))
+    r.header(), r.string(), r.pose()
+    assert scale_state_from_covariance(r.f64s(36)) is state
+
+
+def test_odometry_carries_the_twist_in_the_child_frame() -> None:
+    cov, _ = odometry_covariances(True, 0.5, 0.02)
+    twist_cam = np.array([0.01, -0.2, 0.03, 0.5, -0.1, 9.5])  # [ω, v]
+    r = CdrReader(serialize(messages.odometry(_T(), 0, "w", "c", cov, cov, twist_cam=twist_cam)))
+    r.header(), r.string(), r.pose(), r.f64s(36)
+    np.testing.assert_array_equal(r.f64s(6), [0.5, -0.1, 9.5, 0.01, -0.2, 0.03])  # linear, angular
+    with pytest.raises(CodecError, match="finite"):
+        messages.odometry(_T(), 0, "w", "c", cov, cov, twist_cam=np.full(6, np.nan))
 
 
 def test_path_decodes_with_an_independent_reader() -> None:

@@ -3,9 +3,15 @@
 The golden trajectory was written by the assembly ``metricslam run --deterministic`` used before
 the builder existed (``make_backend`` + ``RecordingDepthSource`` + ``SlamPipeline``, by hand) on
 the seeded 60-frame rendered loop, with the rendered depth as the depth source, so it does not
-change when the shipped network does. The builder must reproduce it byte for byte. If an
-intended algorithm change moves it, regenerate it with the recipe in ``_golden_run`` and say so
-in the commit.
+change when the shipped network does. Two claims, tested apart:
+
+* the builder reproduces the golden trajectory to within rounding: 1 µm / 1e-8 rad per pose
+  (``tests/trajectory_compare.py`` says why), not byte for byte, since floating point differs
+  across CPUs and BLAS kernels (another machine's run differed by 2.3e-10);
+* the deterministic assembly is deterministic: two runs on one machine give identical bytes.
+
+If an intended algorithm change moves the golden, regenerate it with the recipe in
+``_deterministic_run`` and say so in the commit.
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from metricslam.errors import DepthSourceError
 from metricslam.slam.config_file import load_system_config
 from metricslam.slam.session_builder import build_session, preset_for
 from metricslam.slam.system_config import SystemConfig
-from metricslam.trajectory.io import write_kitti_poses
+from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
+
+from tests.trajectory_compare import assert_trajectories_close, trajectory_difference
 
 GOLDEN = "deterministic_synth_loop60_seed3.txt"
 
@@ -52,9 +60,8 @@ class RefusingDepth:
         raise DepthSourceError("called although learned scale is off")
 
 
-@pytest.mark.slow
-def test_builder_reproduces_the_deterministic_trajectory_byte_for_byte(synth_sequence, repo_root, tmp_path):
-    seq_dir = synth_sequence(60, seed=3, path="loop")
+def _deterministic_run(seq_dir, out) -> dict:
+    """``metricslam run --deterministic``'s assembly on ``seq_dir``; the trajectory to ``out``."""
     seq = open_sequence(seq_dir)
     source = RenderedDepth(seq)
     # metricslam run --deterministic's configuration, loaded the way `run` loads it
@@ -66,15 +73,30 @@ def test_builder_reproduces_the_deterministic_trajectory_byte_for_byte(synth_seq
             pipe.process(seq[i])
     finally:
         pipe.close()
-    out = tmp_path / "est.txt"
     write_kitti_poses(out, np.array([e.T_world_cam for e in pipe.trajectory()]))
     assert source.calls > 0 and pipe.stats()["backend"]["scale_factors"] > 0
-    golden = repo_root / "tests" / "golden" / GOLDEN
-    if out.read_bytes() != golden.read_bytes():
-        from metricslam.trajectory.io import read_kitti_poses
+    return {"path": out, "bytes": out.read_bytes()}
 
-        diff = np.abs(read_kitti_poses(out) - read_kitti_poses(golden)).max()
-        pytest.fail(f"trajectory differs from {golden.name} (max |ΔT| {diff:.3g})")
+
+@pytest.fixture(scope="module")
+def golden_loop_run(synth_sequence, tmp_path_factory) -> dict:
+    return _deterministic_run(synth_sequence(60, seed=3, path="loop"), tmp_path_factory.mktemp("builder") / "est.txt")
+
+
+@pytest.mark.slow
+def test_builder_reproduces_the_golden_trajectory_within_rounding(golden_loop_run, repo_root):
+    """The golden may come from another machine: poses within 1 µm / 1e-8 rad (rounding), not bytes."""
+    golden = read_kitti_poses(repo_root / "tests" / "golden" / GOLDEN)
+    assert_trajectories_close(read_kitti_poses(golden_loop_run["path"]), golden, what=f"trajectory vs {GOLDEN}")
+
+
+@pytest.mark.slow
+def test_builder_deterministic_runs_are_identical_byte_for_byte_on_one_machine(golden_loop_run, synth_sequence,
+                                                                               tmp_path):
+    again = _deterministic_run(synth_sequence(60, seed=3, path="loop"), tmp_path / "again.txt")
+    if again["bytes"] != golden_loop_run["bytes"]:
+        diff = trajectory_difference(read_kitti_poses(again["path"]), read_kitti_poses(golden_loop_run["path"]))
+        pytest.fail(f"two deterministic runs on this machine differ: {diff.describe()}")
 
 
 def test_modes_decide_what_is_built(synth_sequence):

@@ -48,7 +48,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
 from metricslam.camera import PinholeCamera
-from metricslam.errors import CalibrationError, CameraError
+from metricslam.errors import CalibrationError, CameraError, validation_problems
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ def make_calibration(K: np.ndarray, width_px: int, height_px: int, model: str = 
         return Calibration(camera=camera, distortion_model=name, distortion_coefficients=coeffs,
                            source=source or ("" if path is None else str(path)))
     except (CameraError, ValueError) as exc:
-        raise CalibrationError(f"invalid calibration: {exc}", path) from None
+        raise CalibrationError(f"invalid calibration: {validation_problems(exc)}", path) from None
 
 
 def read_yaml_document(path: Path) -> dict:
@@ -168,6 +168,8 @@ def read_yaml_document(path: Path) -> dict:
     import yaml
 
     path = Path(path)
+    if path.is_dir():
+        raise CalibrationError("is a folder: pass the calibration file inside it", path)
     if not path.is_file():
         raise CalibrationError("calibration file does not exist", path)
 
@@ -177,7 +179,17 @@ def read_yaml_document(path: Path) -> dict:
     _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix",
                             lambda loader, node: loader.construct_mapping(node, deep=True))
     # OpenCV writes "%YAML:1.0", which is not a YAML directive PyYAML accepts
-    text = "\n".join("" if line.startswith("%") else line for line in path.read_text().splitlines())
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise CalibrationError(f"cannot read the calibration file: {exc.strerror}", path) from None
+    try:
+        decoded = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(
+            f"not a text file (byte 0x{raw[exc.start]:02x} at offset {exc.start} is not UTF-8): pass "
+            "a YAML calibration file (docs/calibration.md)", path) from None
+    text = "\n".join("" if line.startswith("%") else line for line in decoded.splitlines())
     try:
         doc = yaml.load(text, Loader=_Loader)  # noqa: S506 -- a SafeLoader subclass
     except yaml.YAMLError as exc:

@@ -76,6 +76,10 @@ class GraphError(MetricSlamError):
     """The global pose graph rejected an input or failed to solve."""
 
 
+class ScaleError(MetricSlamError):
+    """A run asked for learned metric scale and never got it (its trajectory is not metric)."""
+
+
 class CodecError(MetricSlamError):
     """A wire message could not be encoded or decoded."""
 
@@ -90,3 +94,44 @@ class ServiceError(MetricSlamError):
 
 class TrainingError(MetricSlamError):
     """Training configuration or data is invalid."""
+
+
+def validation_problems(exc: Exception, env_prefix: str | None = None,
+                        from_flags: object = ()) -> str:
+    """One line naming each problem of a pydantic ``ValidationError`` (or any error with an
+    ``errors()`` method): ``field: message (got 'value')``, joined with ``; ``.
+
+    pydantic's own ``str(exc)`` spans several lines and ends each with a documentation URL;
+    this is what goes into a :class:`MetricSlamError` message instead, so the CLI prints one
+    line. Duck-typed: this module imports no pydantic.
+
+    Args:
+        exc: the validation error.
+        env_prefix: settings read from the environment (``"SLAM_"``, ``"DEPTH_"``): each field
+            also names its variable, e.g. ``max_cameras (env SLAM_MAX_CAMERAS)``.
+        from_flags: field names whose value came from the command line, not the environment
+            (named ``(command line)`` instead).
+    """
+    errors = getattr(exc, "errors", None)
+    if errors is None:
+        return str(exc)
+    try:
+        details = errors(include_url=False)
+    except TypeError:
+        details = errors()
+    problems = []
+    for err in details:
+        loc = [str(p) for p in err.get("loc", ())]
+        msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+        if not loc:
+            problems.append(msg)
+            continue
+        where = ".".join(loc)
+        if loc[0] in set(from_flags):
+            where += " (command line)"
+        elif env_prefix:
+            where += f" (env {env_prefix}{'__'.join(loc).upper()})"
+        got = err.get("input")
+        shown = "" if err.get("type") == "missing" or isinstance(got, dict) else f" (got {got!r})"
+        problems.append(f"{where}: {msg}{shown}")
+    return "; ".join(problems) or str(exc).splitlines()[0]

@@ -14,6 +14,11 @@ learned scale factors than needed to call it established) and ``metric``. ``unsc
 (the VO's arbitrary units: no depth source, or the VO had no map yet) are skipped and counted —
 left out of a TUM file, a placeholder line in a KITTI file (one line per frame;
 :func:`~metricslam_slam.tools.recording.write_poses`) — unless ``--all``.
+
+Says when the SLAM service started a new session for the camera during the recording (and why:
+``session_restarted`` "new session …", e.g. a second replay whose frames went back), and when the
+service restarted (its health answer's ``instance`` changed, or a continuing
+``session_restarted``): frames missing then are blamed on the restart, not the replay rate.
 """
 
 from __future__ import annotations
@@ -54,23 +59,32 @@ def run(args: argparse.Namespace) -> int:
 
     import time
 
-    from metricslam_slam.tools.client import PoseRecorder, query_trajectory, settled_trajectory
+    from metricslam_slam.tools.client import (
+        PoseRecorder, new_sessions, query_health, query_trajectory, service_restart, settled_trajectory,
+    )
     from metricslam_slam.tools.recording import missing_error, missing_frames, unscaled_frames, write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
 
     session = open_client(args.zenoh_endpoint)
     try:
         recorder = PoseRecorder(session, args.camera_id, map_topics=bool(args.mcap))
+        health_before = query_health(session, timeout_s=2.0)
         print(f"recording metricslam/{args.camera_id}/pose ...", flush=True)
         recorder.wait_frames(args.frames, args.timeout)
         if args.mcap:  # the last keyframe's landmarks, depth and path follow its pose
             time.sleep(1.0)
         recorder.close()
+        statuses = recorder.statuses_so_far()
+        restart = service_restart(health_before, query_health(session, timeout_s=2.0), statuses)
         trajectory = None
         if args.trajectory:  # after the last pose its keyframe's depth and solve may still run
             trajectory = settled_trajectory(lambda: query_trajectory(session, args.camera_id))
     finally:
         session.close()
+    for detail in new_sessions(statuses):
+        print(f"the SLAM service started a {detail} (camera {args.camera_id})", flush=True)
+    if restart is not None:
+        print(f"the SLAM service restarted during the recording: {restart}", flush=True)
     if args.mcap:  # before the pose file, which fails when frames are missing
         counts = write_mcap(args.mcap, args.camera_id, recorder, trajectory)
         print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
@@ -83,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"skipped {len(skip)} unscaled poses (frames {_ranges(skip)}; {where}); --all records them")
     missing = missing_frames(recorder.poses, trajectory, args.frames)
     if missing:  # what arrived is written; the run still fails, naming what did not
-        raise missing_error(missing, args.frames)
+        raise missing_error(missing, args.frames, restart)
     return 0
 
 

@@ -13,6 +13,12 @@ waiting up to ``--confirm-timeout`` seconds without news for the last ones) and 
 the service's full queue, malformed, lost), unless ``--allow-loss``. ``--max-in-flight N`` adds
 back-pressure (never more than N frames ahead of the poses) for runs where every frame must be
 processed on a slow machine.
+
+A second replay under the same ``--camera-id`` starts a new SLAM session by itself when its frame
+indices or timestamps go back (said in the service's log, on ``…/status`` and here);
+``--new-session`` asks for one whatever the frames (e.g. a sequence whose frames go on from
+the last one's). When the SLAM service restarted during the replay, the error names the
+restart instead of the rate.
 """
 
 from __future__ import annotations
@@ -48,6 +54,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "seconds (default 10; 0: count what arrived by then)")
     p.add_argument("--allow-loss", action="store_true",
                    help="exit 0 even when the SLAM service confirmed fewer frames than were sent")
+    p.add_argument("--new-session", action="store_true",
+                   help="first reset the camera id: the SLAM service starts a fresh session at its next "
+                        "frame instead of continuing its earlier trajectory (one starts anyway when the "
+                        "frame indices or timestamps go back)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
     return p
@@ -70,10 +80,14 @@ def run(args: argparse.Namespace) -> int:
             wait_for_service(session, args.wait, args.zenoh_endpoint)
         report = replay_sequence(session, seq, args.camera_id, args.rate, args.start, stop,
                                  args.max_in_flight, progress=not args.no_progress,
-                                 confirm_timeout_s=args.confirm_timeout, subscriber_timeout_s=args.wait)
+                                 confirm_timeout_s=args.confirm_timeout, subscriber_timeout_s=args.wait,
+                                 new_session=args.new_session)
     finally:
         session.close()
     if not report.complete and not args.allow_loss:
+        if report.restart is not None:
+            raise ServiceError(report.describe() + "; replay again once it is up (`metricslam up` restarts "
+                               "it), or pass --allow-loss to accept the gap")
         raise ServiceError(report.describe() + "; lower --rate, add --max-in-flight N, or pass "
                            "--allow-loss to accept it")
     print(report.describe(), flush=True)

@@ -9,13 +9,16 @@ Example::
     metricslam run TUM_SEQ --calib cam.yaml --format tum --out est.tum   # your intrinsics
     metricslam run SEQ --out est.txt --rerun run.rrd  # plus a Rerun recording (viz extra)
     metricslam run SEQ --out est.txt --mcap run.mcap  # plus an MCAP file for Foxglove (ros extra)
+    metricslam run SEQ --out est.txt --live-out live.txt --continuous-out cont.txt  # the streams
 
 Writes one KITTI pose line (``T_world_cam``, 3x4 row-major) per input frame (``--format tum``:
 one ``t tx ty tz qx qy qz qw`` line per frame that has a pose). A frame that cannot be read
 (missing, truncated, corrupt, wrong size) is logged and processed as an invalid frame
 (:class:`~metricslam.datasets.frame_reader.FrameReader`); frames without a pose of their own
 are interpolated or marked (:meth:`SlamPipeline.trajectory`; docs/usage.md says what each output
-format does with them). ``--json`` writes the run statistics (:meth:`SlamPipeline.stats`:
+format does with them). ``--live-out`` writes every frame's pose as it was published live (before
+later optimization moved it) and ``--continuous-out`` the continuous odometry stream beside it
+(:mod:`metricslam.trajectory.continuous`; an observer: ``--out`` is the same with or without it). ``--json`` writes the run statistics (:meth:`SlamPipeline.stats`:
 counters, ms per stage, back end), the frames that were unreadable, interpolated or left without
 a pose (:func:`pose_gap_stats`), plus the scale estimate over time
 (:meth:`SlamPipeline.scale_history`, units in :mod:`metricslam.slam.scale_history`):
@@ -36,6 +39,14 @@ a pose (:func:`pose_gap_stats`), plus the scale estimate over time
   processed (:class:`~metricslam.slam.types.ScaleState`), ``first_metric_frame``, and
   ``initial_scale`` (the provisional scale at VO initialization; None when off, as it is offline
   unless the config's ``initial_scale`` section turns it on).
+* ``scale_engaged`` (metric mode only) — whether the learned scale fixed the metric scale by the
+  end of the run (:attr:`GlobalBackend.scale_established`: ``scale_factors_solved`` learned
+  scale factors in the final solve, at least ``scale_factors_needed``).
+
+Nothing is silently non-metric: a depth model that cannot be loaded is an error before the first
+frame, and a metric run (no ``--no-scale`` / ``--vo-only``) whose learned scale never engaged
+still writes its files but says so (``scale: NOT metric`` in the summary, one error line) and
+exits with code 1. Output paths are checked before the first frame too.
 """
 
 from __future__ import annotations
@@ -72,6 +83,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="also write an MCAP recording for Foxglove (the ros extra): every frame's "
                         "pose, the optimized path, keyframe images, coarse depth maps and "
                         "landmarks as ROS 2 messages (docs/recordings.md)")
+    p.add_argument("--live-out", metavar="LIVE.txt",
+                   help="also write every frame's live pose, as the SLAM service publishes it on "
+                        "…/pose (one line per frame, in --format)")
+    p.add_argument("--continuous-out", metavar="CONT.txt",
+                   help="also write the continuous odometry stream (…/odom: corrections blended "
+                        "in over --continuous-horizon; metricslam.trajectory.continuous)")
+    p.add_argument("--continuous-horizon", type=float, default=None, metavar="S",
+                   help="seconds over which the continuous stream blends a correction in "
+                        "(default: ContinuousOdometryConfig's)")
     p.add_argument("--no-scale", action="store_true",
                    help="no learned scale factors (scale fixed by the monocular initialization)")
     p.add_argument("--vo-only", action="store_true",
@@ -140,12 +160,20 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.calibration import load_calibration
     from metricslam.datasets import open_sequence
     from metricslam.datasets.frame_reader import FrameReader
-    from metricslam.errors import ConfigError
+    from metricslam.errors import ConfigError, ScaleError
     from metricslam.ros2.session_log import SessionRecorder
+    from metricslam.slam.depth_source import OnnxDepthSource
     from metricslam.slam.session_builder import build_session, preset_for
     from metricslam.trajectory.io import write_kitti_poses, write_tum
 
     config = config_from_args(args)
+    for flag, path in (("--out", args.out), ("--json", args.json), ("--live-out", args.live_out),
+                       ("--continuous-out", args.continuous_out)):
+        if path:
+            check_output_path(path, flag)  # not after the whole sequence was processed
+    depth_source = None
+    if config.use_scale:  # a model that cannot load fails here, not once per keyframe
+        depth_source = OnnxDepthSource(config.depth.model_path).load()
     viewer = open_recording(args.rerun) if args.rerun else None
     calibration = load_calibration(args.calib) if args.calib else None
     seq = open_sequence(args.seq_dir, calibration=calibration)
@@ -155,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     frames = FrameReader(seq)
     mcap_log = open_mcap(args.mcap, camera_id(seq.name)) if args.mcap else None  # before any thread
-    pipeline = build_session(seq.camera, config, default_preset=preset)
+    pipeline = build_session(seq.camera, config, depth_source=depth_source, default_preset=preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              pipeline.vo.config.model_dump())
     logging.getLogger("metricslam.run").info("camera%s: %s", f" (from {args.calib})" if args.calib else "",
@@ -163,6 +191,11 @@ def run(args: argparse.Namespace) -> int:
     if viewer is not None:
         viewer.attach(pipeline)  # keyframe depth maps arrive as the back end's ScaleMeasured events
     recorder = SessionRecorder(mcap_log, pipeline) if mcap_log is not None else None
+    streams = None
+    if args.live_out or args.continuous_out:
+        from metricslam_cli.live_streams import LiveStreams
+
+        streams = LiveStreams(pipeline, args.continuous_horizon)
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(n), desc=f"run {Path(args.seq_dir).name}", unit="frame",
@@ -173,6 +206,8 @@ def run(args: argparse.Namespace) -> int:
                 viewer.log(camera_id(seq.name), frame, est, pipeline)
             if recorder is not None:
                 recorder.after_frame(frame, est)
+            if streams is not None:
+                streams.after_frame(est)
     finally:
         pipeline.close()
         if viewer is not None:
@@ -187,15 +222,25 @@ def run(args: argparse.Namespace) -> int:
                   np.array([e.T_world_cam for e in kept]).reshape(-1, 4, 4))
     else:
         write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]))
+    if streams is not None:
+        streams.write(args.live_out, args.continuous_out, args.format)
     stats = pipeline.stats()
+    if streams is not None:
+        stats["continuous"] = streams.stats()
     stats.update(pose_gap_stats(traj, frames.unreadable))
     stats.update(pipeline.scale_history())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
                   "fps": n / wall_s if wall_s > 0 else None, "mode": config.mode,
                   "deterministic": config.deterministic,
                   "config": config.model_dump(mode="json")})
+    if config.use_scale:
+        stats["scale_engaged"] = bool(pipeline.backend.scale_established)
+        stats["scale_factors_needed"] = config.graph_config().min_scale_factors_established
+        stats["scale_factors_solved"] = pipeline.backend.scale_factors_solved
     print(f"{n} frames, {stats['keyframes']} keyframes, {stats['tracking_losses']} tracking "
           f"losses, {stats['fps']:.1f} frames/s (including image loading) -> {args.out}")
+    if config.use_scale:
+        print(scale_summary(stats))
     if stats["frames_unreadable"] or stats["interpolated"] or stats["pose_invalid"]:
         print(f"{stats['frames_unreadable']} unreadable frames, {stats['interpolated']} poses "
               f"interpolated, {stats['pose_invalid']} frames without a pose (frame lists in --json)")
@@ -203,7 +248,62 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(stats, indent=2, default=float) + "\n")
+    if config.use_scale and not stats["scale_engaged"]:
+        raise ScaleError(f"learned scale never engaged, so {args.out} is not metric (the VO's arbitrary "
+                         f"scale, not metres; {scale_summary(stats)}). Check the depth model "
+                         "(--model, the config's depth.model_path) and the warnings above, or give a "
+                         "longer sequence; pass --no-scale if an unscaled trajectory is what you want")
     return 0
+
+
+def scale_summary(stats: dict) -> str:
+    """One line on the learned scale of a metric-mode run, from its :meth:`SlamPipeline.stats`
+    plus ``scale_engaged`` / ``scale_factors_solved`` / ``scale_factors_needed``: metric from
+    which frame, or why not."""
+    backend = stats.get("backend") or {}
+    states = stats.get("scale_states") or {}
+    requests = (f"{backend.get('depth_requests', 0)} depth requests ({backend.get('depth_failures', 0)} "
+                f"failed, {backend.get('depth_dropped', 0)} dropped)")
+    if not stats.get("scale_engaged"):
+        return (f"scale: NOT metric, {stats.get('scale_factors_solved', 0)} learned scale factors in "
+                f"the final solve, {stats.get('scale_factors_needed')} needed; {requests}")
+    first = stats.get("first_metric_frame")
+    when = "after the final solve" if first is None else f"from frame {first}"
+    return (f"scale: metric {when} ({states.get('metric', 0)} of {stats.get('frames', 0)} frames "
+            f"metric when processed), {stats.get('scale_factors_solved', 0)} learned scale factors; "
+            f"{requests}")
+
+
+def check_output_path(path: str, flag: str) -> None:
+    """Refuse, before any frame is processed, an output path that cannot be written: a folder,
+    a path through a file, a folder without write permission. Creates missing parent folders
+    (the writers would) and leaves an existing file as it is.
+
+    Raises:
+        ConfigError: naming the flag, the path and what to do.
+    """
+    import os
+    from pathlib import Path
+
+    from metricslam.errors import ConfigError
+
+    out = Path(path)
+    if out.is_dir():
+        raise ConfigError(f"{flag} {path} is a folder: name a file to write, e.g. "
+                          f"{out / ('stats.json' if flag == '--json' else 'est.txt')}")
+    existed = out.exists()
+    above = next((p for p in out.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise ConfigError(f"{flag} {path} cannot be written: {above} is a file, not a folder")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("ab"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{flag} {path} cannot be written ({exc.strerror or exc}): choose a "
+                          "file in a folder you can write to") from exc
+    if not existed:
+        os.unlink(out)
 
 
 def open_recording(target: str):

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     import signal
 
-    from metricslam_slam.service.settings import SlamServiceSettings
+    from metricslam_slam.service.settings import load_settings
     from metricslam_slam.service.slam_service import SlamService
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
     config = config_from_args(args)  # before any network: a bad file fails fast
-    settings = SlamServiceSettings(**overrides)
+    settings = load_settings(**overrides)
     from metricslam_slam.service.memory import limit_malloc_arenas
 
     limit_malloc_arenas(settings.malloc_arenas)  # before the service's threads start

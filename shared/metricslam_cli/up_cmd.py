@@ -9,7 +9,8 @@ Every port the stack binds is checked first: a taken one is refused (exit code 1
 naming it and the flag that moves it. Children are supervised: restarted if they die, or if
 they stop answering their health probe (router query, depth ``/healthz``, SLAM health query) for
 ``--hang-timeout`` seconds, with exponential backoff while they keep failing; Ctrl-C / SIGTERM
-stops them all. The SLAM service always has a state directory (``--state-dir``, else
+stops them all. Without ``--log-dir`` the last lines of each child's output are kept and printed
+when it fails. The SLAM service always has a state directory (``--state-dir``, else
 ``SLAM_STATE_DIR``, else a temporary folder removed when ``up`` stops), so a restarted SLAM child
 continues each camera's trajectory as a new linked segment instead of starting over at the origin.
 """
@@ -35,12 +36,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help=f"depth service port (default {DEFAULT_DEPTH_PORT})")
     p.add_argument("--depth-host", default=DEFAULT_DEPTH_HOST, help="depth service interface")
     p.add_argument("--no-scale", action="store_true", help="no depth service, no learned scale")
-    p.add_argument("--preset", help="VO preset for the SLAM service (kitti, euroc, tum, synth)")
+    p.add_argument("--preset", choices=("kitti", "euroc", "tum", "synth"),
+                   help="VO preset for the SLAM service (default: the config's vo.preset, else kitti)")
     p.add_argument("--config", metavar="FILE.yaml",
                    help="SLAM service system config (the file `metricslam run --config` takes)")
     p.add_argument("--session", dest="session_kind", default="pipeline",
                    choices=("pipeline", "identity"), help="SLAM session kind (identity: transport only)")
-    p.add_argument("--log-dir", metavar="DIR", help="write each child's output to DIR/<name>.log")
+    p.add_argument("--log-dir", metavar="DIR",
+                   help="write each child's output to DIR/<name>.log (else only its last lines are "
+                        "kept, and printed when it fails)")
     p.add_argument("--restart-delay", type=float, default=1.0, metavar="S",
                    help="seconds before restarting a child that died; doubles while it keeps "
                         "crashing (default 1)")
@@ -70,8 +74,13 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
     from pathlib import Path
 
+    from metricslam.slam.config_file import load_system_config
+    from metricslam.slam.system_config import LIVE_PROFILE
     from metricslam_slam.supervisor.launcher import Stack
 
+    # the SLAM child's system config, checked before anything starts (slam-service loads it so)
+    load_system_config(args.config, profile=LIVE_PROFILE,
+                       overrides={"vo": {"preset": args.preset}} if args.preset else None)
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     # without state, a SLAM service the supervisor restarts starts its cameras over at the origin

@@ -14,7 +14,7 @@ from pathlib import Path
 from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from metricslam.errors import ConfigError
+from metricslam.errors import ConfigError, validation_problems
 from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT
 
 log = logging.getLogger(__name__)
@@ -144,9 +144,5 @@ def load_settings(**overrides: object) -> DepthServiceSettings:
     try:
         return DepthServiceSettings(**given)
     except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc'])} (env DEPTH_{str(e['loc'][0]).upper()}): {e['msg']}"
-            if e["loc"] else e["msg"]
-            for e in exc.errors()
-        )
-        raise ConfigError(f"invalid depth-service settings: {problems}") from exc
+        raise ConfigError("invalid depth-service settings: "
+                          + validation_problems(exc, env_prefix="DEPTH_", from_flags=given)) from exc

@@ -46,7 +46,7 @@ from typing import Any, Literal, get_args, get_origin
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from metricslam.depth.canonical import CanonicalCamera
-from metricslam.errors import DepthModelError
+from metricslam.errors import DepthModelError, validation_problems
 
 #: the version a contract gets when none is given: "1", whole image resized (the shipped models).
 CONTRACT_VERSION = "1"
@@ -220,4 +220,4 @@ class ModelContract(BaseModel):
         try:
             return cls(**values)
         except ValidationError as exc:
-            raise DepthModelError(f"model metadata is invalid: {exc}") from exc
+            raise DepthModelError(f"model metadata is invalid: {validation_problems(exc)}") from exc

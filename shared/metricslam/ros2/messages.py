@@ -59,13 +59,17 @@ def pose_stamped(T_world_cam: np.ndarray, t_ns: int, frame_id: str) -> Any:
 
 
 def odometry(T_world_cam: np.ndarray, t_ns: int, frame_id: str, child_frame_id: str,
-             pose_covariance: np.ndarray, twist_covariance: np.ndarray) -> Any:
+             pose_covariance: np.ndarray, twist_covariance: np.ndarray,
+             twist_cam: np.ndarray | None = None) -> Any:
     """``nav_msgs/Odometry`` with the pose of ``child_frame_id`` (camera) in ``frame_id`` (world)
-    and a zero twist (not estimated: say so in ``twist_covariance``).
+    and its twist.
 
     Args:
         pose_covariance, twist_covariance: (6, 6) in ROS's order ``[x, y, z, rot_x, rot_y,
             rot_z]`` (pose: in ``frame_id``; twist: in ``child_frame_id``).
+        twist_cam: (6,) ``[ω rad/s, v units/s]`` in ``child_frame_id`` (our tangent order,
+            docs/conventions.md; ROS's ``twist.linear = v``, ``twist.angular = ω``); None: zero
+            (not estimated: say so in ``twist_covariance``).
     """
     def cov(c: np.ndarray, name: str) -> np.ndarray:
         c = np.asarray(c, dtype=np.float64)
@@ -74,8 +78,12 @@ def odometry(T_world_cam: np.ndarray, t_ns: int, frame_id: str, child_frame_id: 
         return c.reshape(36).copy()
 
     Vector3 = msg_class("geometry_msgs/msg/Vector3")
-    twist = msg_class("geometry_msgs/msg/Twist")(linear=Vector3(x=0.0, y=0.0, z=0.0),
-                                                 angular=Vector3(x=0.0, y=0.0, z=0.0))
+    w_v = np.zeros(6) if twist_cam is None else np.asarray(twist_cam, dtype=np.float64).reshape(6)
+    if not np.all(np.isfinite(w_v)):
+        raise CodecError(f"twist_cam must be finite, got {w_v.tolist()}")
+    twist = msg_class("geometry_msgs/msg/Twist")(
+        linear=Vector3(x=float(w_v[3]), y=float(w_v[4]), z=float(w_v[5])),
+        angular=Vector3(x=float(w_v[0]), y=float(w_v[1]), z=float(w_v[2])))
     return msg_class(ODOMETRY)(
         header=header(t_ns, frame_id), child_frame_id=child_frame_id,
         pose=msg_class("geometry_msgs/msg/PoseWithCovariance")(

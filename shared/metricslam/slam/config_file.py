@@ -43,7 +43,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from metricslam.errors import ConfigError
+from metricslam.errors import ConfigError, validation_problems
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.system_config import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, SystemConfig
 from metricslam.slam.vo.config import VOConfig
@@ -155,7 +155,7 @@ def _validate(layer: dict[str, Any], where: str) -> SystemConfig:
     try:
         return SystemConfig.model_validate(layer)
     except ValidationError as exc:
-        raise ConfigError(f"{where}: invalid config: {exc}") from exc
+        raise ConfigError(f"{where}: invalid config: {validation_problems(exc)}") from exc
     except ConfigError as exc:  # raised by VOConfig inside the vo section's validator
         raise ConfigError(f"{where}: {exc}") from exc
 
@@ -176,4 +176,4 @@ class ConfigOverrides:
         try:
             return GraphConfig(**{**self.graph, **fixed})
         except ValidationError as exc:
-            raise ConfigError(f"invalid graph config: {exc}") from exc
+            raise ConfigError(f"invalid graph config: {validation_problems(exc)}") from exc

@@ -57,6 +57,18 @@ class OnnxDepthSource:
         self._model = None
         self._lock = threading.Lock()
 
+    def load(self) -> "OnnxDepthSource":
+        """Load the model now instead of on the first request, so a missing or broken file is a
+        start-up error, not one warning per keyframe (``metricslam run``). Returns ``self``.
+
+        Raises:
+            DepthModelError: the file is missing, not a loadable ONNX model, or its metadata
+                does not match the code.
+        """
+        with self._lock:
+            self._load()
+        return self
+
     def _load(self):
         from metricslam.depth.model import DepthModel
 

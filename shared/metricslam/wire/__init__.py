@@ -16,9 +16,10 @@ from metricslam.wire.codec import (
     encode,
 )
 from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
+from metricslam.wire.odometry_message import OdometryMessage
 
 __all__ = [
     "CalibrationMessage", "FrameMessage", "KeyframeDepthMessage", "KeyframeMessage", "LandmarksMessage",
-    "Message", "PoseMessage",
+    "Message", "OdometryMessage", "PoseMessage",
     "StatusMessage", "TrajectoryMessage", "decode", "decode_as", "encode",
 ]

@@ -305,7 +305,9 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 # map messages live in their own module (it builds on Message, so it is imported here, last)
 from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage  # noqa: E402
 
-MESSAGE_TYPES.update({cls.KIND: cls for cls in (LandmarksMessage, KeyframeDepthMessage)})
+from metricslam.wire.odometry_message import OdometryMessage  # noqa: E402
+
+MESSAGE_TYPES.update({cls.KIND: cls for cls in (LandmarksMessage, KeyframeDepthMessage, OdometryMessage)})
 
 
 def encode(message: Message) -> bytes:

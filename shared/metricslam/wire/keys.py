@@ -5,6 +5,8 @@ Per camera ``<camera_id>``::
     metricslam/<camera_id>/frame        in   FrameMessage (image + intrinsics)
     metricslam/<camera_id>/calibration  in   CalibrationMessage (optional; frames carry it too)
     metricslam/<camera_id>/pose         out  PoseMessage, one per input frame
+    metricslam/<camera_id>/odom         out  OdometryMessage, one per input frame: the continuous
+                                             pose (corrections blended in; never jumps)
     metricslam/<camera_id>/keyframe     out  KeyframeMessage, one per new keyframe
     metricslam/<camera_id>/status       out  StatusMessage, periodically
     metricslam/<camera_id>/trajectory   queryable -> TrajectoryMessage (whole current trajectory)
@@ -31,7 +33,7 @@ HEALTH_KEY = f"{PREFIX}/_service/health"
 ROUTER_HEALTH_KEY = f"{PREFIX}/_router/health"
 _CAMERA_ID_RE = re.compile(r"^[A-Za-z0-9.\-][A-Za-z0-9_.\-]{0,63}$")
 TOPICS = ("frame", "calibration", "pose", "keyframe", "status", "trajectory", "path", "landmarks",
-          "keyframe_depth")
+          "keyframe_depth", "odom")
 
 
 def check_camera_id(camera_id: str) -> str:
@@ -64,3 +66,13 @@ def parse_key(key_expr: str) -> tuple[str, str]:
     if len(parts) != 3 or parts[0] != PREFIX or parts[2] not in TOPICS:
         raise CodecError(f"key {key_expr!r} is not of the form {PREFIX}/<camera_id>/<topic>")
     return check_camera_id(parts[1]), parts[2]
+
+
+#: the SLAM service's queryable ``metricslam/_service/reset/<camera_id>``: the camera's next
+#: frame starts a fresh session, not continuing its earlier trajectory (docs/usage.md)
+RESET_KEY_PREFIX = f"{PREFIX}/_service/reset"
+
+
+def reset_key(camera_id: str) -> str:
+    """``metricslam/_service/reset/<camera_id>`` (:data:`RESET_KEY_PREFIX`)."""
+    return f"{RESET_KEY_PREFIX}/{check_camera_id(camera_id)}"

@@ -3,6 +3,14 @@
 The zenoh callback only calls :meth:`CameraWorker.offer` (append raw bytes, O(1)); decoding and
 SLAM run on the worker's own thread so a slow frame never blocks the transport. Malformed frames
 (bad bytes, wrong camera id, intrinsics that change mid-stream) are counted and dropped.
+
+A camera's trajectory is continued only while its frames go on. A frame whose index or timestamp
+goes backwards (:func:`~metricslam_slam.service.continued_session.why_new_session`: a second
+replay, another sequence, a restarted camera), or the first frame after a reset request
+(:meth:`CameraWorker.request_new_session`), starts a fresh session at the origin: the earlier
+poses are forgotten (``forget_prior``), a warning is logged and a ``session_restarted`` status
+whose detail starts with :data:`NEW_SESSION` says why. Such a frame may also bring new
+intrinsics (another camera under the same id).
 """
 
 from __future__ import annotations
@@ -20,11 +28,15 @@ from metricslam.datasets.base import Frame
 from metricslam.errors import CodecError
 from metricslam.slam.types import PoseEstimate, ScaleState, SlamSession, TrackingState
 from metricslam.wire.codec import FrameMessage, KeyframeMessage, Message, PoseMessage, StatusMessage, decode_as
-from metricslam_slam.service.continued_session import ContinuedSession
+from metricslam_slam.service.continued_session import ContinuedSession, why_new_session
 from metricslam_slam.service.memory import release_memory
+from metricslam_slam.service.odometry_stream import OdometryStream
 
 log = logging.getLogger(__name__)
 Publish = Callable[[str, Message], None]  # (topic, message)
+#: how the detail of a ``session_restarted`` status starts when the camera's earlier trajectory
+#: is NOT continued (a fresh session at the origin); a continuing one starts "continuing from"
+NEW_SESSION = "new session"
 
 
 class CameraWorker:
@@ -45,6 +57,9 @@ class CameraWorker:
         on_event: ``(event, detail)`` of the camera's session (``StatusMessage.event``).
         max_session_keyframes: after this many keyframes the session is closed and a new one
             continues it (``session_rolled_over``), which bounds its memory; None: never.
+        forget_prior: called when a fresh session replaces the camera's earlier trajectory
+            (frames went backwards, or a reset): the earlier poses must not be continued later
+            (the service moves its persisted file aside).
     """
 
     def __init__(self, camera_id: str, session_factory: Callable[[str, PinholeCamera], SlamSession],
@@ -53,7 +68,8 @@ class CameraWorker:
                  prior_poses: Callable[[], list[PoseEstimate]] | None = None,
                  on_session: Callable[[SlamSession], None] | None = None,
                  on_event: Callable[[str, str], None] | None = None,
-                 max_session_keyframes: int | None = None) -> None:
+                 max_session_keyframes: int | None = None,
+                 forget_prior: Callable[[], None] | None = None) -> None:
         self.camera_id = camera_id
         self._factory = session_factory
         self._prior_poses = prior_poses
@@ -61,6 +77,9 @@ class CameraWorker:
         self._on_event = on_event
         self._max_session_keyframes = max_session_keyframes
         self._session_keyframes = 0
+        self._forget_prior = forget_prior
+        self._new_session_reason: str | None = None  # set by request_new_session, used by the next frame
+        self._last_frame: tuple[int, int] | None = None  # (frame_index, t_ns) of the last frame processed
         self._final: list[PoseEstimate] = []  # the trajectory at close, once the session is freed
         self.last_frame_s = time.monotonic()  # when the latest frame was offered (idle close)
         self._publish = publish
@@ -83,6 +102,7 @@ class CameraWorker:
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=500)
         self._done_times: collections.deque[float] = collections.deque(maxlen=50)
         self._last_T = np.eye(4)
+        self._odometry = OdometryStream(camera_id, publish)  # ".../odom", beside ".../pose"
         self._thread = threading.Thread(target=self._run, name=f"slam-{camera_id}", daemon=True)
         self._thread.start()
 
@@ -100,6 +120,11 @@ class CameraWorker:
             self._queue.append((time.perf_counter_ns(), payload))
             self._cond.notify()
             return True
+
+    def request_new_session(self, reason: str) -> None:
+        """Start a fresh session (not continuing anything) at the next frame, saying ``reason``."""
+        with self._cond:
+            self._new_session_reason = reason
 
     # -- worker thread -----------------------------------------------------------------------
     def _run(self) -> None:
@@ -127,18 +152,19 @@ class CameraWorker:
             return self._reject(str(exc))
         if msg.camera_id != self.camera_id:
             return self._reject(f"header camera_id {msg.camera_id!r} != key camera id")
+        with self._cond:
+            reason, self._new_session_reason = self._new_session_reason, None
         if self._camera is None:
-            prior = self._prior_poses() if self._prior_poses is not None else []
-            with self._session_lock:
-                self._session = self._start_session(msg.camera, prior)
-            self._camera = msg.camera
-            if prior:
-                self._event("session_restarted", f"continuing from frame {prior[-1].frame_index} "
-                            f"({len(prior)} earlier poses) as segment "
-                            f"{getattr(self._session, 'first_segment_id', 0)}")
-            log.info("camera %s: new SLAM session, %s", self.camera_id, msg.camera)
-        elif msg.camera != self._camera:
-            return self._reject("intrinsics changed mid-stream; use a new camera id")
+            self._first_session(msg, reason)
+        else:
+            if reason is None and self._last_frame is not None:
+                reason = why_new_session(*self._last_frame, msg.frame_index, msg.t_ns)
+            if reason is not None:
+                self._fresh_session(msg.camera, reason)
+            elif msg.camera != self._camera:
+                return self._reject("intrinsics changed mid-stream; use a new camera id, or reset this one "
+                                    "(`metricslam replay --new-session`, docs/usage.md)")
+        self._last_frame = (msg.frame_index, msg.t_ns)
         frame = Frame(index=msg.frame_index, t_ns=msg.t_ns, image=msg.image, camera=msg.camera)
         with self._session_lock:
             try:
@@ -154,6 +180,7 @@ class CameraWorker:
             scale_established=est.scale_established, processing_ms=latency_ms,
             t_sent_ns=msg.t_sent_ns, scale_state=est.scale_state, scale_factors=est.scale_factors,
             T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
+        self._odometry.after_pose(est)
         if est.is_keyframe:
             self.keyframes += 1
             self._session_keyframes += 1
@@ -173,11 +200,65 @@ class CameraWorker:
         if self._max_session_keyframes is not None and self._session_keyframes >= self._max_session_keyframes:
             self._roll_over()
 
+    def _first_session(self, msg: FrameMessage, reason: str | None) -> None:
+        """The worker's first session: continues the camera's earlier poses unless ``reason`` (a
+        reset) or the frame goes backwards from them."""
+        prior = [] if reason is not None or self._prior_poses is None else self._prior_poses()
+        if prior:
+            last = prior[-1]
+            reason = why_new_session(last.frame_index, last.t_ns, msg.frame_index, msg.t_ns)
+        if reason is not None:
+            self._forget()
+        with self._session_lock:
+            self._session = self._start_session(msg.camera, [] if reason is not None else prior)
+        self._camera = msg.camera
+        log.info("camera %s: new SLAM session, %s", self.camera_id, msg.camera)
+        if reason is not None:
+            self._announce_new_session(reason, prior)
+        elif prior:
+            self._event("session_restarted", f"continuing from frame {prior[-1].frame_index} "
+                        f"({len(prior)} earlier poses) as segment "
+                        f"{getattr(self._session, 'first_segment_id', 0)}")
+
+    def _fresh_session(self, camera: PinholeCamera, reason: str) -> None:
+        """Replace the running session by a fresh one at the origin (nothing continued)."""
+        with self._session_lock:
+            old = self._session
+            try:
+                old.close()
+            except Exception:  # noqa: BLE001 -- the camera goes on in a new session regardless
+                log.exception("camera %s: closing the session to start a new one failed", self.camera_id)
+            earlier = old.trajectory()
+            self._forget()
+            # a new trajectory, not a correction of the old one: the continuous stream starts over
+            # at the origin instead of blending back to it
+            self._odometry = OdometryStream(self.camera_id, self._publish)
+            self._session = self._start_session(camera, [])
+            self._camera = camera
+        del old
+        release_memory()
+        self._announce_new_session(reason, earlier)
+
+    def _forget(self) -> None:
+        if self._forget_prior is not None:
+            try:
+                self._forget_prior()
+            except Exception:  # noqa: BLE001 -- the new session starts regardless
+                log.exception("camera %s: forgetting the earlier trajectory failed", self.camera_id)
+
+    def _announce_new_session(self, reason: str, earlier: list[PoseEstimate]) -> None:
+        what = (f"its earlier trajectory ({len(earlier)} poses, to frame {earlier[-1].frame_index}) is not "
+                "continued" if earlier else "nothing earlier is continued")
+        detail = f"{NEW_SESSION} at the origin: {reason}; {what}"
+        log.warning("camera %s: %s", self.camera_id, detail)
+        self._event("session_restarted", detail)
+
     def _start_session(self, camera: PinholeCamera, prior: list[PoseEstimate]) -> SlamSession:
         session = self._factory(self.camera_id, camera)
         if prior:
             session = ContinuedSession(session, prior)
         self._session_keyframes = 0
+        self._odometry.attach(session)
         if self._on_session is not None:
             self._on_session(session)
         return session

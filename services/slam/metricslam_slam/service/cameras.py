@@ -11,7 +11,12 @@
   ``closed_trajectory_ttl_s`` (at most ``max_closed_trajectories`` cameras, oldest dropped) and,
   with ``state_dir``, on disk (:class:`~metricslam_slam.service.trajectory_store.TrajectoryStore`).
   When the camera comes back — or the service restarts — its new session continues from its
-  last pose (:class:`~metricslam_slam.service.continued_session.ContinuedSession`).
+  last pose (:class:`~metricslam_slam.service.continued_session.ContinuedSession`), unless its
+  frames go backwards from it (a second replay): then a fresh session starts and the earlier
+  trajectory is forgotten (:meth:`Cameras.forget_prior`; on disk it is moved aside).
+* **Reset** (:meth:`Cameras.reset`, the service's ``metricslam/_service/reset/<camera_id>``
+  queryable, ``metricslam replay --new-session``): the camera's next frame starts a fresh
+  session whatever its index; nothing earlier is continued.
 """
 
 from __future__ import annotations
@@ -67,6 +72,8 @@ class Cameras:
         self._closed: collections.OrderedDict[str, tuple[float, list[PoseEstimate]]] = collections.OrderedDict()
         self._refusals: collections.OrderedDict[str, float] = collections.OrderedDict()
         self._closing: dict[str, threading.Event] = {}  # camera id -> set once its close is done
+        # camera id -> why its next worker must start a fresh session (a reset with no worker running)
+        self._pending_resets: collections.OrderedDict[str, str] = collections.OrderedDict()
         self._accepting = True
         self.store = TrajectoryStore(settings.state_dir) if settings.state_dir is not None else None
         self.refused_frames = 0
@@ -84,6 +91,9 @@ class Cameras:
                 worker = self._workers.get(camera_id)
                 if worker is None and len(self._workers) < self.settings.max_cameras:
                     worker = self._workers[camera_id] = self._make_worker(camera_id)
+                    reset_why = self._pending_resets.pop(camera_id, None)
+                    if reset_why is not None:
+                        worker.request_new_session(reset_why)
             if worker is None:
                 self._refuse(camera_id)
                 return False
@@ -149,6 +159,42 @@ class Cameras:
         if entry is not None:
             return entry[1]
         return self.store.load(camera_id) if self.store is not None else []
+
+    def forget_prior(self, camera_id: str) -> None:
+        """A fresh session replaces the camera's earlier trajectory: drop the closed one and move
+        the file in ``state_dir`` aside (``<camera_id>.poses.previous.jsonl``), so neither is
+        continued later."""
+        with self._lock:
+            closing = self._closing.get(camera_id)
+        if closing is not None:
+            closing.wait(60.0)
+        with self._lock:
+            self._closed.pop(camera_id, None)
+        if self.store is not None:
+            try:
+                moved = self.store.set_aside(camera_id)
+            except OSError as exc:
+                log.error("camera %s: cannot move its earlier trajectory aside: %s", camera_id, exc)
+            else:
+                if moved is not None:
+                    log.info("camera %s: earlier trajectory moved to %s", camera_id, moved)
+
+    def reset(self, camera_id: str, why: str) -> int:
+        """Make the camera's next frame start a fresh session (``why`` is said in its
+        ``session_restarted`` status); returns how many earlier poses will not be continued."""
+        with self._lock:
+            worker = self._workers.get(camera_id)
+            if worker is None:
+                self._pending_resets[camera_id] = why
+                self._pending_resets.move_to_end(camera_id)
+                while len(self._pending_resets) > _MAX_REFUSED_IDS:
+                    self._pending_resets.popitem(last=False)
+        if worker is not None:
+            worker.request_new_session(why)
+            return len(worker.trajectory())
+        earlier = self.closed_trajectory(camera_id) or []
+        self.forget_prior(camera_id)
+        return len(earlier)
 
     def record_pose(self, camera_id: str, pose: object) -> None:
         """Persist a published pose (no-op without ``state_dir``)."""

@@ -19,6 +19,12 @@ extrapolated). Its segment ids follow the earlier ones (a new segment: consumers
 seam); the new segment has the monocular VO's arbitrary scale until learned scale factors
 establish it again, like any new session.
 
+A camera is continued only when its frames go on: :func:`why_new_session` names the reason
+when a frame's index or timestamp goes backwards from the last earlier pose (a second replay of
+a sequence, another sequence, a restarted camera); the service then starts a fresh session
+(``session_restarted`` with a detail that starts "new session") instead of placing the new
+frames after the old trajectory (``camera_worker.CameraWorker``).
+
 The earlier poses are final, and a camera keeps them for as long as it runs (each roll-over
 continues them all; ``…/trajectory`` answers them), so they are held as columns
 (:class:`PoseTable`, ~170 bytes a pose instead of ~490 for a :class:`PoseEstimate` object and
@@ -43,6 +49,25 @@ _SCALE_STATES: tuple[ScaleState, ...] = tuple(ScaleState)
 MAX_EXTRAPOLATION_S = 5.0
 #: the camera's last velocity is its mean over this much of its last earlier poses (s)
 VELOCITY_WINDOW_S = 1.0
+
+
+def why_new_session(last_frame_index: int, last_t_ns: int, frame_index: int, t_ns: int) -> str | None:
+    """Why a frame cannot continue a camera's trajectory whose last frame was
+    ``(last_frame_index, last_t_ns)``, or None when it can (both go on; equal timestamps are
+    allowed, a repeated frame index is not).
+
+    >>> why_new_session(50, 5_000_000_000, 0, 0)
+    'frame index went back from 50 to 0 (a new replay or sequence?)'
+    >>> why_new_session(50, 5_000_000_000, 51, 5_100_000_000) is None
+    True
+    """
+    if frame_index <= last_frame_index:
+        return (f"frame index went back from {last_frame_index} to {frame_index} (a new replay or sequence?)"
+                if frame_index < last_frame_index else f"frame index {frame_index} was sent again")
+    if t_ns < last_t_ns:
+        return (f"timestamp went back from {last_t_ns / 1e9:.3f} s to {t_ns / 1e9:.3f} s "
+                "(a restarted camera or another sequence?)")
+    return None
 
 
 def anchor_pose(prior: list[PoseEstimate]) -> PoseEstimate:

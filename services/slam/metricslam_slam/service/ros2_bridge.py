@@ -6,8 +6,10 @@ same ``ROS_DOMAIN_ID`` sees ordinary topics. Per camera ``<cam>`` (its id as a R
 
 out (CDR, reliable, volatile, keep-last 10)::
 
-    /metricslam/<cam>/odom       nav_msgs/Odometry        every TRACKING frame
-    /metricslam/<cam>/pose       geometry_msgs/PoseStamped every TRACKING frame
+    /metricslam/<cam>/odom       nav_msgs/Odometry        every TRACKING frame: the CONTINUOUS pose
+                                                          (native ``…/odom``; never jumps) and its twist
+    /metricslam/<cam>/pose       geometry_msgs/PoseStamped every TRACKING frame: the live pose
+                                                          (native ``…/pose``; jumps when a correction lands)
     /metricslam/<cam>/path       nav_msgs/Path            the optimized trajectory, on change
     /metricslam/<cam>/landmarks  sensor_msgs/PointCloud2  the local window's landmarks, per keyframe
 
@@ -21,6 +23,14 @@ frame), ``child_frame_id = <cam>/camera_optical`` (x right, y down, z forward). 
 (and counted; ``…/status`` and the log say why) until that camera's CameraInfo arrived. The
 bridge translates the native messages the service publishes (:meth:`Ros2Bridge.forward`); it owns
 no SLAM state.
+
+Scale state in the standard messages: the Odometry's pose covariance diagonal (x, y, z) is exactly
+``position_sigma_m²`` when the pose is ``metric``, :data:`PROVISIONAL_VARIANCE` (100 m²) when
+``provisional`` and :data:`UNKNOWN_VARIANCE` (1e6) when ``unscaled`` (:func:`odometry_covariances`;
+a ROS node reads it back with :func:`scale_state_from_covariance`: ≥ 5e5 unscaled, ≥ 50
+provisional, else metric). The twist's linear variances follow the same three levels (a velocity
+is only as metric as the pose); its angular ones are ``rotation_sigma_rad²`` (rotation needs no
+scale). The PoseStamped of the same stamp has the same scale state.
 """
 
 from __future__ import annotations
@@ -43,29 +53,48 @@ from metricslam.ros2.rmw_zenoh import (
 from metricslam.ros2.typestore import (
     CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, dds_type_name, deserialize, serialize,
 )
-from metricslam.slam.types import TrackingState
+from metricslam.slam.types import ScaleState, TrackingState
 from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, Message, PoseMessage, StatusMessage, TrajectoryMessage, encode
 from metricslam.wire.map_messages import LandmarksMessage
+from metricslam.wire.odometry_message import OdometryMessage
 
 log = logging.getLogger(__name__)
 QOS = Qos()  # reliable, volatile, keep-last 10: "::,10:,:,:,,"
 #: variance (m², rad², (m/s)², …) meaning "no information": a fusing filter gives it no weight
 UNKNOWN_VARIANCE = 1e6
+#: position variance (m²) of a ``provisional`` pose: metric-ish, from few scale measurements
+PROVISIONAL_VARIANCE = 100.0
 
 
-def odometry_covariances(scale_established: bool, position_sigma_m: float,
+def odometry_covariances(scale_state: ScaleState | bool, position_sigma_m: float,
                          rotation_sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """``(pose_covariance, twist_covariance)`` (6, 6) for ``nav_msgs/Odometry``.
 
     The SLAM computes no per-frame marginal covariance, so the pose gets a NOMINAL diagonal
-    (``position_sigma_m``², ``rotation_sigma_rad``²), with position variance
-    :data:`UNKNOWN_VARIANCE` until learned scale made the positions metric; the twist is not
-    estimated (zero) and gets :data:`UNKNOWN_VARIANCE` throughout.
+    (``position_sigma_m``², ``rotation_sigma_rad``²) whose position variance says the scale
+    state (module docstring): ``position_sigma_m``² when ``metric``, :data:`PROVISIONAL_VARIANCE`
+    when ``provisional``, :data:`UNKNOWN_VARIANCE` when ``unscaled`` (a bool is
+    ``scale_established``: True metric, False unscaled). The twist (from the continuous
+    odometry) gets the same position-level variance on its linear part (per s²) and
+    ``rotation_sigma_rad``² on its angular part.
     """
-    var_p = position_sigma_m ** 2 if scale_established else UNKNOWN_VARIANCE
-    pose_cov = np.diag([var_p] * 3 + [rotation_sigma_rad ** 2] * 3)
-    return pose_cov, np.eye(6) * UNKNOWN_VARIANCE
+    if isinstance(scale_state, bool):
+        scale_state = ScaleState.METRIC if scale_state else ScaleState.UNSCALED
+    if position_sigma_m ** 2 >= PROVISIONAL_VARIANCE / 2:
+        raise ValueError(f"position_sigma_m={position_sigma_m} would read as provisional; keep it < 7 m")
+    var_p = {ScaleState.METRIC: position_sigma_m ** 2, ScaleState.PROVISIONAL: PROVISIONAL_VARIANCE,
+             ScaleState.UNSCALED: UNKNOWN_VARIANCE}[ScaleState(scale_state)]
+    diag = [var_p] * 3 + [rotation_sigma_rad ** 2] * 3
+    return np.diag(diag), np.diag(diag)
+
+
+def scale_state_from_covariance(pose_covariance: np.ndarray) -> ScaleState:
+    """The scale state an Odometry's pose covariance (36,) or (6, 6) says (module docstring)."""
+    var_p = float(np.asarray(pose_covariance, dtype=float).reshape(36)[0])
+    if var_p >= UNKNOWN_VARIANCE / 2:
+        return ScaleState.UNSCALED
+    return ScaleState.PROVISIONAL if var_p >= PROVISIONAL_VARIANCE / 2 else ScaleState.METRIC
 
 
 class RosPublisher:
@@ -148,6 +177,8 @@ class Ros2Bridge:
         try:
             if isinstance(message, PoseMessage) and topic == "pose":
                 self._forward_pose(camera_id, message)
+            elif isinstance(message, OdometryMessage) and topic == "odom":
+                self._forward_odometry(camera_id, message)
             elif isinstance(message, TrajectoryMessage) and topic == "path":
                 out = self._camera_outputs(camera_id)
                 out["path"].put(messages.path(message.t_ns, message.T_world_cam,
@@ -163,11 +194,16 @@ class Ros2Bridge:
     def _forward_pose(self, camera_id: str, msg: PoseMessage) -> None:
         if msg.state != TrackingState.TRACKING:
             return  # initializing / lost / invalid frames carry no pose of their own
+        world, _ = frame_ids(camera_id)
+        self._camera_outputs(camera_id)["pose"].put(messages.pose_stamped(msg.T_world_cam, msg.t_ns, world))
+
+    def _forward_odometry(self, camera_id: str, msg: OdometryMessage) -> None:
+        if msg.state != TrackingState.TRACKING:
+            return
         world, cam = frame_ids(camera_id)
-        out = self._camera_outputs(camera_id)
-        pose_cov, twist_cov = odometry_covariances(msg.scale_established, *self._sigmas)
-        out["odom"].put(messages.odometry(msg.T_world_cam, msg.t_ns, world, cam, pose_cov, twist_cov))
-        out["pose"].put(messages.pose_stamped(msg.T_world_cam, msg.t_ns, world))
+        pose_cov, twist_cov = odometry_covariances(msg.scale_state, *self._sigmas)
+        self._camera_outputs(camera_id)["odom"].put(messages.odometry(
+            msg.T_world_cam, msg.t_ns, world, cam, pose_cov, twist_cov, twist_cam=msg.twist_cam))
 
     def _camera_outputs(self, camera_id: str) -> dict[str, RosPublisher]:
         with self._lock:

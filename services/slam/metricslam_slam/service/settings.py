@@ -14,11 +14,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from metricslam.endpoints import DEFAULT_DEPTH_URL, DEFAULT_ZENOH_ENDPOINT
-from metricslam.errors import ConfigError
+from metricslam.errors import ConfigError, validation_problems
 
 #: service variables that moved into the system config, and where they live now
 RETIRED_ENV = {"SLAM_PRESET": "METRICSLAM_VO__PRESET", "SLAM_USE_SCALE": "METRICSLAM_DEPTH__USE_SCALE",
@@ -103,6 +103,21 @@ class SlamServiceSettings(BaseSettings):
     malloc_arenas: int = Field(default=2, ge=0)
     heap_trim_period_s: float = Field(default=10.0, ge=0)
     state_dir: Path | None = None
+
+
+def load_settings(**overrides: object) -> SlamServiceSettings:
+    """Settings from the environment (``SLAM_*``) with ``overrides`` (the command-line flags that
+    were given; a None value is a value, e.g. ``depth_url=None`` for the in-process model) on top.
+
+    Raises:
+        ConfigError: a value is invalid, in one line naming each field and its variable (or the
+            command line), e.g. ``SLAM_MAX_CAMERAS=-1``.
+    """
+    try:
+        return SlamServiceSettings(**overrides)
+    except ValidationError as exc:
+        raise ConfigError("invalid slam-service settings: "
+                          + validation_problems(exc, env_prefix="SLAM_", from_flags=overrides)) from exc
 
 
 def check_retired_environment(env: Mapping[str, str] | None = None) -> None:

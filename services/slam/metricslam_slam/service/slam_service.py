@@ -6,7 +6,10 @@ drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every proce
 ``…/path``, ``…/landmarks``, ``…/keyframe_depth`` (:class:`MapPublisher`); with ``ros2`` on, a
 :class:`~metricslam_slam.service.ros2_bridge.Ros2Bridge` mirrors them as ROS 2 topics and takes
 ``sensor_msgs`` camera input; answers the queryables
-``…/trajectory`` (whole current trajectory) and ``metricslam/_service/health`` (JSON).
+``…/trajectory`` (whole current trajectory), ``metricslam/_service/health`` (JSON; its
+``instance`` and ``started_t_ns`` change when the service restarts, which is how ``replay`` and
+``poses`` tell a restart from a slow service) and ``metricslam/_service/reset/<camera_id>`` (the
+camera's next frame starts a fresh session; the query's payload, if any, is the reason given).
 Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
 """
 
@@ -16,6 +19,7 @@ import json
 import logging
 import threading
 import time
+import uuid
 
 import numpy as np
 import zenoh
@@ -39,7 +43,7 @@ log = logging.getLogger(__name__)
 #: topics published with zenoh's ``BLOCK`` congestion control: a pose for every processed frame
 #: (zenoh's default, ``DROP``, discards a sample when the transmit queue is full, as it can be
 #: when the service is starved of CPU).
-RELIABLE_TOPICS = frozenset({"pose", "keyframe", "status"})
+RELIABLE_TOPICS = frozenset({"pose", "odom", "keyframe", "status"})
 
 
 def congestion_for(topic: str) -> zenoh.CongestionControl:
@@ -91,6 +95,8 @@ class SlamService:
         self._entities: list = []
         self._status_thread: threading.Thread | None = None
         self.unrouted = 0
+        self.instance = uuid.uuid4().hex[:12]  # tells this run of the service from the next one
+        self.started_t_ns = time.time_ns()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self, connect_timeout_s: float = 30.0) -> "SlamService":
@@ -120,6 +126,7 @@ class SlamService:
             s.declare_subscriber(self._frame_keys, self._on_frame),
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
+            s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", self._on_reset_query),
         ]
         if self.settings.ros2:
             from metricslam_slam.service.ros2_bridge import Ros2Bridge
@@ -182,7 +189,8 @@ class SlamService:
             prior_poses=lambda: self._cameras.prior_poses(camera_id),
             on_session=lambda session: self._on_new_session(camera_id, session),
             on_event=lambda event, detail: self._cameras.publish_event(worker, event, detail),
-            max_session_keyframes=self.settings.max_session_keyframes)
+            max_session_keyframes=self.settings.max_session_keyframes,
+            forget_prior=lambda: self._cameras.forget_prior(camera_id))
         return worker
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
@@ -274,6 +282,26 @@ class SlamService:
             state_code=TrajectoryMessage.state_codes([p.state for p in poses]))
         query.reply(keys.key(camera_id, "trajectory"), encode(message))
 
+    def _on_reset_query(self, query: zenoh.Query) -> None:
+        """``metricslam/_service/reset/<camera_id>``: the camera's next frame starts a fresh
+        session. Answers JSON ``{"camera_id", "earlier_poses", "instance"}``; a service that does
+        not serve the camera (``frame_key_expr``) stays silent."""
+        camera_id = str(query.key_expr).rsplit("/", 1)[-1]
+        try:
+            keys.check_camera_id(camera_id)
+        except CodecError as exc:
+            query.reply_err(str(exc).encode())
+            return
+        if not self._serves(camera_id) or self._stopped.is_set():
+            return
+        given = query.payload.to_bytes().decode(errors="replace").strip() if query.payload is not None else ""
+        why = f"reset requested ({given[:200] or 'no reason given'})"
+        earlier = self._cameras.reset(camera_id, why)
+        log.warning("camera %s: %s; its next frame starts a new session (%d earlier poses not continued)",
+                    camera_id, why, earlier)
+        query.reply(keys.reset_key(camera_id), json.dumps(
+            {"camera_id": camera_id, "earlier_poses": earlier, "instance": self.instance}).encode())
+
     def _on_health_query(self, query: zenoh.Query) -> None:
         query.reply(keys.HEALTH_KEY, json.dumps(self.health()).encode())
 
@@ -283,7 +311,8 @@ class SlamService:
         return {"ready": self._session is not None and not self._stopped.is_set(),
                 "cameras": cameras, "unrouted": self.unrouted, "depth_url": depth_url,
                 "depth_reachable": reachable, "depth_outages": outages,
-                "ros2": None if self.ros2 is None else self.ros2.stats(), **self._cameras.stats()}
+                "ros2": None if self.ros2 is None else self.ros2.stats(), "instance": self.instance,
+                "started_t_ns": self.started_t_ns, **self._cameras.stats()}
 
     # -- depth link --------------------------------------------------------------------------
     def _depth_link(self) -> tuple[str | None, bool | None, str | None, int]:

@@ -10,7 +10,8 @@ While a camera runs, every published pose is appended (line-buffered: a killed p
 at most the line being written; a torn last line is skipped on reading). When a camera's
 session closes cleanly (idle, rolled over, service stopping) the file is rewritten, atomically,
 with the final optimized trajectory. A restarted service reads it back and continues the camera
-(:mod:`metricslam_slam.service.continued_session`).
+(:mod:`metricslam_slam.service.continued_session`). When a fresh session replaces it (frames went
+backwards, a reset) the file is moved aside to ``<camera_id>.poses.previous.jsonl`` (one kept).
 """
 
 from __future__ import annotations
@@ -111,6 +112,20 @@ class TrajectoryStore:
                 out.flush()
                 os.fsync(out.fileno())
             tmp.replace(path)
+
+    def set_aside(self, camera_id: str) -> Path | None:
+        """Move the camera's file to ``<camera_id>.poses.previous.jsonl`` (replacing an older
+        one), so the next pose starts a new file; returns where it went, or None without one."""
+        path = self.path(camera_id)
+        previous = path.with_name(f"{camera_id}.poses.previous.jsonl")
+        with self._lock:
+            f = self._files.pop(camera_id, None)
+            if f is not None:
+                f.close()
+            if not path.is_file():
+                return None
+            path.replace(previous)
+        return previous
 
     def close(self) -> None:
         with self._lock:

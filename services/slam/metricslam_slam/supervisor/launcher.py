@@ -22,6 +22,7 @@ outlive a killed launcher.
 
 from __future__ import annotations
 
+import collections
 import errno
 import logging
 import os
@@ -42,6 +43,40 @@ from metricslam_slam.supervisor.liveness import LivenessMonitor, Probe, ZenohPro
 from metricslam_slam.zenoh_config import check_endpoint
 
 log = logging.getLogger(__name__)
+
+
+#: output lines of a child kept for error messages (``metricslam up`` without ``--log-dir``)
+TAIL_LINES = 20
+
+
+def _drain(stream, tail: collections.deque) -> None:
+    """Read a child's output to its end, keeping the last lines (decoded, never raising)."""
+    try:
+        for raw in stream:
+            tail.append(raw.decode("utf-8", errors="replace").rstrip())
+    except (OSError, ValueError):
+        pass  # the pipe closed under us
+    finally:
+        stream.close()  # _wait_drained: the whole output is in
+
+
+def _wait_drained(process: subprocess.Popen, timeout_s: float = 2.0) -> None:
+    """Give the drain thread of an exited ``process`` a moment to read its last lines (it
+    closes the pipe at the end of the output)."""
+    deadline = time.monotonic() + timeout_s
+    while not process.stdout.closed and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def _file_tail(path: str, lines: int) -> list[str]:
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - 64 * 1024))
+            text = f.read().decode("utf-8", errors="replace")
+    except OSError:
+        return []
+    return [line for line in text.splitlines() if line.strip()][-lines:]
 
 
 @dataclass
@@ -65,16 +100,47 @@ class Child:
     last_answer_s: float | None = None  # time.monotonic() of its latest answer to ``probe``
     hung_kills: int = 0
     _log_file: object = field(default=None, repr=False)
+    #: the latest start's last output lines when there is no ``log_path`` (else the file has them)
+    _tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=TAIL_LINES),
+                                     repr=False)
 
     def start(self) -> None:
         self.started_at_s = time.monotonic()
-        out = subprocess.DEVNULL
+        out = subprocess.PIPE
         if self.log_path:
-            self._log_file = open(self.log_path, "ab")
+            if self._log_file is None:
+                self._log_file = open(self.log_path, "ab")
             out = self._log_file
         wrapped = [sys.executable, "-m", "metricslam_slam.supervisor.child", str(os.getpid()), "--", *self.argv]
         self.process = subprocess.Popen(wrapped, stdout=out, stderr=subprocess.STDOUT,
                                         stdin=subprocess.DEVNULL)
+        if out is subprocess.PIPE:
+            # drained on a thread (a full pipe would block the child), keeping a bounded tail
+            self._tail = collections.deque(maxlen=TAIL_LINES)
+            threading.Thread(target=_drain, args=(self.process.stdout, self._tail),
+                             name=f"{self.name}-output", daemon=True).start()
+
+    def output_tail(self, lines: int = TAIL_LINES) -> list[str]:
+        """The last ``lines`` non-blank lines the latest process printed (stdout and stderr),
+        from ``log_path`` when there is one. Call it after the process exited: a line still
+        being read may be missing while it runs."""
+        if self.process is not None and self.process.stdout is not None and self.process.poll() is not None:
+            _wait_drained(self.process)
+        if self.log_path:
+            return _file_tail(self.log_path, lines)
+        return [line for line in list(self._tail) if line.strip()][-lines:]
+
+    def failure(self, when: str = "") -> str:
+        """``<name> exited with code N<when>`` plus where to read why: the log file when there
+        is one, and its last output lines, indented, one per line."""
+        code = self.process.returncode if self.process is not None else None
+        tail = self.output_tail()
+        text = f"{self.name} exited with code {code}{when}"
+        if self.log_path:
+            text += f" (its output: {self.log_path})"
+        if tail:
+            text += "; its last output:\n" + "\n".join(f"  {self.name}| {line}" for line in tail)
+        return text
 
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
@@ -98,6 +164,7 @@ class Child:
                 self.process.wait()
         if self._log_file is not None:
             self._log_file.close()
+            self._log_file = None
 
 
 def _port_open(host: str, port: int) -> bool:
@@ -178,7 +245,8 @@ class Stack:
         state_dir: the SLAM service's state directory (``--state-dir``: each camera's
             trajectory, so a restarted SLAM child continues its cameras as new linked segments);
             None: its ``SLAM_STATE_DIR``, if any, from this process's environment.
-        log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log`` (else discarded).
+        log_dir: children's stdout/stderr go to ``<log_dir>/<name>.log``; else only the last
+            :data:`TAIL_LINES` lines of each are kept, and printed when it fails.
         rerun: live view target of the SLAM service (``web`` or ``FILE.rrd``).
         hang_timeout_s: a child whose health probe has not answered for this long is killed and
             restarted (0: no liveness probes, only exits are noticed). A restarted child has
@@ -277,8 +345,7 @@ class Stack:
         while True:
             # alive first: a child that died must not pass for ready because something else answers
             if not child.alive():
-                raise ServiceError(f"{child.name} exited with code {child.process.returncode} while "
-                                   f"starting{'; see ' + child.log_path if child.log_path else ''}")
+                raise ServiceError(child.failure(" while starting"))
             if child.ready():
                 return
             if time.monotonic() > deadline or self._stopping():
@@ -355,10 +422,13 @@ class Stack:
         child.crashes_in_a_row = 1 if ran_s >= self.stable_after_s else child.crashes_in_a_row + 1
         delay_s = restart_delay_s(child.crashes_in_a_row, self.restart_delay_s, self.restart_delay_max_s)
         child.restart_at_s = now + delay_s
+        tail = child.output_tail(5)
         log.warning("%s exited with code %s after %.1f s (%d time(s) in a row); restarting in %.3g s "
-                    "(backoff doubles up to %.3g s)%s", child.name, child.process.returncode, ran_s,
+                    "(backoff doubles up to %.3g s)%s%s", child.name, child.process.returncode, ran_s,
                     child.crashes_in_a_row, delay_s, self.restart_delay_max_s,
-                    f"; its output: {child.log_path}" if child.log_path else "")
+                    f"; its output: {child.log_path}" if child.log_path else "",
+                    "; its last output:\n" + "\n".join(f"  {child.name}| {line}" for line in tail)
+                    if tail else "")
 
     def request_stop(self) -> None:
         """Ask :meth:`supervise` to return (within its poll period). Safe in a signal handler: it

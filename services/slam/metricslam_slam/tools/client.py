@@ -21,6 +21,39 @@ from metricslam.wire.codec import (
 )
 from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
 
+#: how the detail of a ``session_restarted`` status starts when the service did NOT continue the
+#: camera's earlier trajectory (the same text as ``camera_worker.NEW_SESSION``, which the tools
+#: may not import; a test checks they agree)
+NEW_SESSION = "new session"
+
+
+def new_sessions(statuses: list[StatusMessage]) -> list[str]:
+    """Details of the ``session_restarted`` statuses that started a fresh session (nothing
+    continued: frames went backwards, or a reset)."""
+    return [s.event_detail or "" for s in statuses
+            if s.event == "session_restarted" and (s.event_detail or "").startswith(NEW_SESSION)]
+
+
+def continued_sessions(statuses: list[StatusMessage]) -> list[str]:
+    """Details of the ``session_restarted`` statuses that continued the camera's earlier
+    trajectory: the service restarted (or the camera came back after an idle close)."""
+    return [s.event_detail or "" for s in statuses
+            if s.event == "session_restarted" and not (s.event_detail or "").startswith(NEW_SESSION)]
+
+
+def service_restart(before: dict | None, after: dict | None, statuses: list[StatusMessage]) -> str | None:
+    """Why the SLAM service looks restarted between two health answers (``instance`` changed, or
+    no answer now) or from a continuing ``session_restarted`` status; None if it does not."""
+    if before is not None and after is not None and before.get("instance") != after.get("instance"):
+        return "it answers as a new instance, started " + time.strftime(
+            "%H:%M:%S", time.localtime(int(after.get("started_t_ns") or 0) / 1e9))
+    continued = continued_sessions(statuses)
+    if continued:
+        return f"session_restarted: {continued[-1]}"
+    if before is not None and after is None:
+        return "no SLAM service answers its health query now: it is down or restarting"
+    return None
+
 
 def describe_counters(status: StatusMessage) -> str:
     """The frame counters of a camera's ``…/status`` in words (counted since its session started)."""
@@ -155,6 +188,11 @@ class PoseRecorder:
         with self._cond:
             return set(self.poses)
 
+    def statuses_so_far(self) -> list[StatusMessage]:
+        """A copy of :attr:`statuses` (they keep arriving on zenoh's thread)."""
+        with self._cond:
+            return list(self.statuses)
+
     def latest_status(self) -> StatusMessage | None:
         with self._cond:
             return self.statuses[-1] if self.statuses else None
@@ -194,6 +232,22 @@ def settled_trajectory(query: Callable[[], TrajectoryMessage], timeout_s: float 
         same = same + 1 if unchanged else 1
         last = now
     return last
+
+
+def reset_camera(session: zenoh.Session, camera_id: str, why: str = "", timeout_s: float = 5.0) -> dict:
+    """Ask the SLAM service to start a fresh session at ``camera_id``'s next frame (its earlier
+    trajectory is not continued); returns its answer ``{"camera_id", "earlier_poses", "instance"}``.
+
+    Raises:
+        ServiceError: no SLAM service serving the camera answered.
+    """
+    errors = []
+    for reply in session.get(keys.reset_key(camera_id), payload=why.encode(), timeout=timeout_s):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+        errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
+    raise ServiceError(f"could not reset camera {camera_id!r}: "
+                       f"{'; '.join(errors) or 'no SLAM service serving it answered'}; is one running (`metricslam up`)?")
 
 
 def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> dict | None:

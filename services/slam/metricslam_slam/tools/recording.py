@@ -43,9 +43,14 @@ def missing_frames(poses: dict[int, PoseMessage], trajectory: TrajectoryMessage 
     return [i for i in range(n_frames) if i not in source]
 
 
-def missing_error(missing: list[int], n_frames: int) -> ServiceError:
-    return ServiceError(f"{len(missing)} of {n_frames} frames have no pose (first: {missing[:10]}); "
-                        "was the replay faster than the service (queue drops on …/status) or "
+def missing_error(missing: list[int], n_frames: int, restart: str | None = None) -> ServiceError:
+    """The error naming frames without a pose; ``restart``: why the SLAM service looks restarted
+    meanwhile (:func:`~metricslam_slam.tools.client.service_restart`), named as the cause."""
+    head = f"{len(missing)} of {n_frames} frames have no pose (first: {missing[:10]})"
+    if restart is not None:
+        return ServiceError(f"{head}: the SLAM service restarted during the recording ({restart}); frames sent "
+                            "while it was down or queued in it are lost: record and replay again")
+    return ServiceError(f"{head}; was the replay faster than the service (queue drops on …/status) or "
                         "did the recorder start late? Raise --timeout or lower --rate")
 
 

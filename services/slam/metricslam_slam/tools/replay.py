@@ -6,7 +6,10 @@ invalid ones included); a frame it dropped (full queue), could not decode, or ne
 none. :func:`replay_sequence` subscribes to the poses before the first frame goes out and, after
 the last, waits until every published frame has its pose or none arrived for
 ``confirm_timeout_s``; its :class:`ReplayReport` says how many were confirmed and, from the
-service's ``…/status``, why the others were not.
+service's ``…/status``, why the others were not: a service that restarted meanwhile (its health
+answer's ``instance`` changed, or it published a continuing ``session_restarted``) is named as
+the cause instead of its queue counters. It also reports a new session the service started for
+the camera (the frames went back from its earlier ones, or ``new_session`` asked for a reset).
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ from metricslam.datasets.base import Sequence
 from metricslam.datasets.frame_reader import FrameReader
 from metricslam.errors import ConfigError, ServiceError
 from metricslam.wire.codec import StatusMessage
-from metricslam_slam.tools.client import FramePublisher, PoseRecorder, describe_counters, query_health
+from metricslam_slam.tools.client import (
+    FramePublisher, PoseRecorder, describe_counters, new_sessions, query_health, reset_camera, service_restart,
+)
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +42,9 @@ class ReplayReport:
         missing: frame indices without a pose (sorted).
         status: the service's latest ``…/status`` for the camera (its counters are since the
             session started, not per replay), or None if none arrived.
+        new_sessions: details of the fresh sessions the service started for the camera meanwhile
+            (``session_restarted`` "new session …": why it did not continue the earlier trajectory).
+        restart: why the SLAM service looks restarted during the replay, or None.
     """
 
     camera_id: str
@@ -44,6 +52,8 @@ class ReplayReport:
     confirmed: int
     missing: list[int] = field(default_factory=list)
     status: StatusMessage | None = None
+    new_sessions: list[str] = field(default_factory=list)
+    restart: str | None = None
 
     @property
     def complete(self) -> bool:
@@ -56,8 +66,13 @@ class ReplayReport:
         if self.missing:
             more = "" if len(self.missing) <= 10 else f" and {len(self.missing) - 10} more"
             text += f"; {len(self.missing)} without a pose: frames {self.missing[:10]}{more}"
+        for detail in self.new_sessions:
+            text += f"; the SLAM service started a {detail}"
         st = self.status
-        if st is not None and self.missing:
+        if self.restart is not None and self.missing:
+            text += (f"; the SLAM service restarted during the replay ({self.restart}): frames sent while it "
+                     "was down or queued in it have no pose")
+        elif st is not None and self.missing:
             text += f"; its status: {describe_counters(st)} (counted since its session started)"
         return text
 
@@ -75,7 +90,8 @@ def wait_for_service(session: zenoh.Session, timeout_s: float, endpoint: str = "
 def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam0",
                     rate_hz: float = 10.0, start: int = 0, stop: int | None = None,
                     max_in_flight: int = 0, progress: bool = True,
-                    confirm_timeout_s: float = 10.0, subscriber_timeout_s: float = 10.0) -> ReplayReport:
+                    confirm_timeout_s: float = 10.0, subscriber_timeout_s: float = 10.0,
+                    new_session: bool = False) -> ReplayReport:
     """Publish frames ``start..stop-1`` at ``rate_hz`` (0 = as fast as possible) and count the
     service's confirmations (module docstring).
 
@@ -86,7 +102,9 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     service treats as an invalid frame. After the last frame, waits for the missing poses until
     none arrived for ``confirm_timeout_s`` (0: report what arrived by then). Before the first
     frame, waits up to ``subscriber_timeout_s`` until zenoh knows the service's subscription: a
-    fresh publisher drops puts until then (seconds on a loaded machine).
+    fresh publisher drops puts until then (seconds on a loaded machine). ``new_session``: first
+    ask the service to start a fresh session at the camera's first frame (:func:`reset_camera`;
+    raises :class:`ServiceError` when no service answers), whatever the frame indices.
     """
     from tqdm import tqdm
 
@@ -96,6 +114,11 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
     if rate_hz < 0:
         raise ConfigError(f"rate must be >= 0 Hz, got {rate_hz}")
     frames = FrameReader(seq)
+    health_before = query_health(session, timeout_s=2.0)
+    if new_session:
+        answer = reset_camera(session, camera_id, "metricslam replay --new-session")
+        log.info("camera %s reset: its next frame starts a new session (%s earlier poses not continued)",
+                 camera_id, answer.get("earlier_poses"))
     publisher = FramePublisher(session, camera_id, block=True)
     recorder = PoseRecorder(session, camera_id)  # before the first frame: no pose is missed
     if subscriber_timeout_s > 0 and not publisher.wait_for_subscriber(subscriber_timeout_s):
@@ -124,8 +147,10 @@ def replay_sequence(session: zenoh.Session, seq: Sequence, camera_id: str = "cam
         if missing:  # a status published after the last frame explains them best
             n_status = len(recorder.statuses)
             recorder.wait_for(lambda r: len(r.statuses) > n_status, min(confirm_timeout_s, 2.0))
+        statuses = recorder.statuses_so_far()
+        restart = service_restart(health_before, query_health(session, timeout_s=2.0), statuses)
         return ReplayReport(camera_id, len(sent), len(sent) - len(missing), missing,
-                            recorder.latest_status())
+                            recorder.latest_status(), new_sessions(statuses), restart)
     finally:
         publisher.close()
         recorder.close()

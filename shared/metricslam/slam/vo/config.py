@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from metricslam.errors import ConfigError
+from metricslam.errors import ConfigError, validation_problems
 
 PresetName = Literal["kitti", "euroc", "tum", "synth"]
 
@@ -98,7 +98,7 @@ class VOConfig(BaseModel):
         try:
             return cls(**values)
         except ValidationError as exc:
-            raise ConfigError(f"invalid VO config: {exc}") from exc
+            raise ConfigError(f"invalid VO config: {validation_problems(exc)}") from exc
 
 
 _PRESETS: dict[str, dict[str, Any]] = {
