@@ -18,6 +18,7 @@ Formats, told apart by their keys (:func:`load_calibration`):
       cy: 255.3
       distortion_model: radtan    # none | radtan | equidistant
       distortion_coefficients: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]
+      mount_height_m: 1.65  # optional: optical centre above the road (m), for ground scale
 
 * **OpenCV FileStorage YAML** (``cv2.FileStorage``, OpenCV's calibration sample):
   ``camera_matrix`` and ``distortion_coefficients`` as ``!!opencv-matrix``, ``image_width``,
@@ -45,7 +46,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from metricslam.camera import PinholeCamera
 from metricslam.errors import CalibrationError, CameraError, validation_problems
@@ -59,7 +60,8 @@ MODEL_ALIASES = {"none": "none", "radtan": "radtan", "radial-tangential": "radta
 #: coefficient counts OpenCV accepts per model
 COEFFICIENT_COUNTS = {"none": (0,), "radtan": (4, 5, 8, 12, 14), "equidistant": (4,)}
 #: keys of the metricslam YAML format
-METRICSLAM_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion_model", "distortion_coefficients")
+METRICSLAM_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion_model", "distortion_coefficients",
+                   "mount_height_m")
 #: largest relative aspect-ratio difference for which intrinsics are rescaled to another image size
 ASPECT_TOLERANCE = 0.01
 
@@ -72,6 +74,8 @@ class Calibration(BaseModel):
         distortion_model: ``none``, ``radtan`` (OpenCV) or ``equidistant`` (OpenCV fisheye).
         distortion_coefficients: the model's coefficients (see the module docstring).
         source: where the calibration came from (a path, or "published TUM fr1"), for logs.
+        mount_height_m: the camera's optical centre above the road plane (m), 0 < h <= 10, for
+            ground-plane scale (docs/ground_scale.md); None when not given.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -80,6 +84,7 @@ class Calibration(BaseModel):
     distortion_model: DistortionModel = "none"
     distortion_coefficients: tuple[float, ...] = ()
     source: str = ""
+    mount_height_m: float | None = Field(default=None, gt=0, le=10)
 
     @model_validator(mode="after")
     def _check_coefficients(self) -> "Calibration":
@@ -140,11 +145,13 @@ class Calibration(BaseModel):
                 f"width: {c.width_px}\nheight: {c.height_px}\n"
                 f"fx: {c.fx_px!r}\nfy: {c.fy_px!r}\ncx: {c.cx_px!r}\ncy: {c.cy_px!r}\n"
                 f"distortion_model: {self.distortion_model}\n"
-                f"distortion_coefficients: [{coeffs}]\n")
+                f"distortion_coefficients: [{coeffs}]\n"
+                + (f"mount_height_m: {self.mount_height_m!r}\n" if self.mount_height_m is not None else ""))
 
 
 def make_calibration(K: np.ndarray, width_px: int, height_px: int, model: str = "none",
-                     coefficients=(), source: str = "", path: object = None) -> Calibration:
+                     coefficients=(), source: str = "", path: object = None,
+                     mount_height_m: float | None = None) -> Calibration:
     """A checked :class:`Calibration` from a 3x3 ``K``; raises :class:`CalibrationError` naming
     ``path`` on bad values."""
     name = MODEL_ALIASES.get(str(model).lower())
@@ -157,7 +164,8 @@ def make_calibration(K: np.ndarray, width_px: int, height_px: int, model: str = 
     try:
         camera = PinholeCamera.from_K(K, width_px, height_px)
         return Calibration(camera=camera, distortion_model=name, distortion_coefficients=coeffs,
-                           source=source or ("" if path is None else str(path)))
+                           source=source or ("" if path is None else str(path)),
+                           mount_height_m=mount_height_m)
     except (CameraError, ValueError) as exc:
         raise CalibrationError(f"invalid calibration: {validation_problems(exc)}", path) from None
 
@@ -266,7 +274,11 @@ def _from_metricslam(doc: dict, path: object) -> Calibration:
     coeffs = (numbers(doc, "distortion_coefficients", None, path)
               if doc.get("distortion_coefficients") is not None else ())
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return make_calibration(K, w, h, model, coeffs, path=path)
+    mount = _scalar(doc, "mount_height_m", path) if doc.get("mount_height_m") is not None else None
+    if mount is not None and not 0.0 < mount <= 10.0:  # also NaN; pydantic would say it less plainly
+        raise CalibrationError(f"'mount_height_m' must be the camera's height above the road in metres, "
+                               f"0 < h <= 10 (KITTI's cam 0: 1.65), got {doc['mount_height_m']!r}", path)
+    return make_calibration(K, w, h, model, coeffs, path=path, mount_height_m=mount)
 
 
 def _from_opencv(doc: dict, path: object) -> Calibration:

@@ -53,6 +53,8 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam_cli.scale_options import add_scale_options, log_scale_sources, scale_flags
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -121,6 +123,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "byte for byte (benchmarks, regression checks); slower, and unlike the "
                         "live system every keyframe's scale arrives before the next frame")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_scale_options(p)
     p.set_defaults(func=run)
     return p
 
@@ -144,8 +147,15 @@ def config_from_args(args: argparse.Namespace):
         flags["vo_only"] = True
     if args.deterministic:
         flags["deterministic"] = True
-    return load_system_config(args.config, profile={"graph": {"depth_queue_size": OFFLINE_DEPTH_QUEUE_SIZE}},
-                              overrides=flags)
+    calib_height = None
+    if getattr(args, "calib", None):
+        from metricslam.calibration import load_calibration
+
+        calib_height = load_calibration(args.calib).mount_height_m
+    scale_profile, scale_overrides = scale_flags(args, calib_height)
+    return load_system_config(args.config, profile={"graph": {"depth_queue_size": OFFLINE_DEPTH_QUEUE_SIZE},
+                                                    **scale_profile},
+                              overrides={**flags, **scale_overrides})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -167,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.trajectory.io import write_kitti_poses, write_tum
 
     config = config_from_args(args)
+    log_scale_sources(config, logging.getLogger("metricslam.run"))
     for flag, path in (("--out", args.out), ("--json", args.json), ("--live-out", args.live_out),
                        ("--continuous-out", args.continuous_out)):
         if path:

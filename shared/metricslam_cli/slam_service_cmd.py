@@ -19,6 +19,7 @@ import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_URL
 from metricslam_cli.extras import require
+from metricslam_cli.scale_options import add_scale_options, scale_flags
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -61,6 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "(env SLAM_STATE_DIR; docs/deployment.md)")
     p.add_argument("--max-cameras", type=int, metavar="N",
                    help="cameras served at once; more are refused (default 8; env SLAM_MAX_CAMERAS)")
+    add_scale_options(p)
     p.set_defaults(func=run)
     return p
 
@@ -80,7 +82,8 @@ def config_from_args(args: argparse.Namespace):
         flags["queues"] = {"frames": args.queue_size}
     if args.no_scale:
         flags["depth"] = {"use_scale": False}
-    return load_system_config(args.config, profile=LIVE_PROFILE, overrides=flags)
+    _, scale_overrides = scale_flags(args)
+    return load_system_config(args.config, profile=LIVE_PROFILE, overrides={**flags, **scale_overrides})
 
 
 def run(args: argparse.Namespace) -> int:

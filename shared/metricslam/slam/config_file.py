@@ -1,7 +1,7 @@
 """Load a :class:`~metricslam.slam.system_config.SystemConfig`: defaults → YAML → environment → flags.
 
 The YAML file (``metricslam run --config FILE.yaml``, ``metricslam slam-service --config
-FILE.yaml``, or ``METRICSLAM_CONFIG=FILE.yaml``) has up to five sections, each a mapping of
+FILE.yaml``, or ``METRICSLAM_CONFIG=FILE.yaml``) has up to six sections, each a mapping of
 field overrides, and two top-level switches; anything left out keeps its default (the graph,
 depth, queues) or the VO preset's value::
 
@@ -19,6 +19,9 @@ depth, queues) or the VO preset's value::
       frames: 8
     initial_scale:             # InitialScaleConfig: enabled (live service: on), timeout_s
       timeout_s: 2.0
+    scale:                     # metricslam.slam.ground.config.ScaleConfig
+      sources: [learned, ground]     # default [learned]; ground needs mount_height_m
+      mount_height_m: 1.65
     vo_only: false
     deterministic: false
 
@@ -52,7 +55,7 @@ __all__ = ["CONFIG_ENV", "DETERMINISTIC_GRAPH", "DETERMINISTIC_VO", "ENV_PREFIX"
            "ConfigOverrides", "environment_layer", "load_system_config", "read_config_file"]
 
 #: sections (mappings) and switches (scalars) a file or the environment may set
-SECTIONS = ("vo", "graph", "depth", "queues", "initial_scale")
+SECTIONS = ("vo", "graph", "depth", "queues", "initial_scale", "scale")
 SWITCHES = ("vo_only", "deterministic")
 ENV_PREFIX = "METRICSLAM_"
 #: environment variable naming the YAML file when no ``--config`` flag is given

@@ -60,6 +60,40 @@ class ScaleMeasured:
 
 
 @dataclass(frozen=True)
+class GroundScaleMeasured:
+    """A keyframe's road-plane scale measurement (``scale.sources`` with ``ground``;
+    :mod:`metricslam.slam.ground`), accepted or not.
+
+    Attributes:
+        kf_id, frame_index, t_ns: the keyframe.
+        height_vo: camera height above the road in the keyframe's VO units (NaN: no estimate).
+        scale: ``h_mount_m / height_vo`` (metres per keyframe VO unit; NaN when not accepted).
+        sigma_log: the factor's log-scale sigma (inf when not accepted).
+        accepted: the measurement became a ground factor; ``reason`` says why not otherwise.
+        inlier_fraction, normal_angle_rad: the road fit's quality (see
+            :class:`~metricslam.slam.ground.height.GroundHeight`).
+        prev_frame_index: the previous keyframe the road was aligned with (-1: none).
+        step_vo: distance between the two keyframes in VO units (NaN: none); with a true
+            distance in metres, ``height_vo · true_m / step_vo`` is the height in metres.
+        source: always ``"ground"`` (the learned source's event is :class:`ScaleMeasured`).
+    """
+
+    kf_id: int
+    frame_index: int
+    t_ns: int
+    height_vo: float
+    scale: float
+    sigma_log: float
+    accepted: bool
+    reason: str = ""
+    inlier_fraction: float = 0.0
+    normal_angle_rad: float = 0.0
+    prev_frame_index: int = -1
+    step_vo: float = float("nan")
+    source: str = "ground"
+
+
+@dataclass(frozen=True)
 class Solved:
     """One incremental solve of the global graph finished.
 
@@ -115,7 +149,7 @@ class InitialScaleApplied:
     wait_ms: float
 
 
-Event = ScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
+Event = ScaleMeasured | GroundScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
 
 
 class EventBus:

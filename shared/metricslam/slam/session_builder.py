@@ -23,6 +23,7 @@ from pathlib import Path
 from metricslam.camera import PinholeCamera
 from metricslam.slam.backend_factory import make_backend
 from metricslam.slam.depth_source import DepthSource, OnnxDepthSource
+from metricslam.slam.ground.meter import GroundScaleMeter
 from metricslam.slam.pipeline import SlamPipeline
 from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.system_config import DEFAULT_PRESET, SystemConfig
@@ -57,8 +58,9 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
         source = None
         if config.use_scale:
             source = depth_source if depth_source is not None else OnnxDepthSource(config.depth.model_path)
+        ground = GroundScaleMeter(config.scale) if config.use_ground else None
         backend = make_backend(camera, use_scale=config.use_scale, depth_source=source,
-                               config=graph_config)
+                               config=graph_config, ground_meter=ground)
         if source is not None:
             history.attach(backend.events)
     log.debug("built a %s session: VO %s", config.mode, vo_config.model_dump())

@@ -9,6 +9,7 @@ what none of them owns::
       depth:         DepthConfig   learned scale on/off, in-process ONNX model
       queues:        QueueConfig   frames buffered per camera in the live service
       initial_scale: InitialScaleConfig  provisional metric scale at VO initialization (live)
+      scale:         ScaleConfig   scale sources (learned, ground), mounting height, scale health
       vo_only:       bool          local VO only, no global graph (implies no learned scale)
       deterministic: bool          BA, depth and the global solve in the frame loop
 
@@ -26,6 +27,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.ground.config import ScaleConfig
 from metricslam.slam.initial_scale import InitialScaleConfig
 from metricslam.slam.vo.config import PresetName, VOConfig
 
@@ -116,18 +118,26 @@ class SystemConfig(BaseModel):
     depth: DepthConfig = DepthConfig()
     queues: QueueConfig = QueueConfig()
     initial_scale: InitialScaleConfig = InitialScaleConfig()
+    scale: ScaleConfig = ScaleConfig()
     vo_only: bool = False
     deterministic: bool = False
 
     @property
     def use_scale(self) -> bool:
-        """Learned scale factors take part (on, and a global graph to put them in)."""
-        return self.depth.use_scale and not self.vo_only
+        """Learned scale factors take part (on, a scale source, and a global graph to put them in)."""
+        return self.depth.use_scale and self.scale.learned and not self.vo_only
+
+    @property
+    def use_ground(self) -> bool:
+        """Ground-plane scale factors take part (``scale.sources`` has ground, and a graph)."""
+        return self.scale.ground_on and not self.vo_only
 
     @property
     def mode(self) -> str:
         """``metric``, ``no-scale`` or ``vo-only`` (run statistics, logs)."""
-        return "vo-only" if self.vo_only else ("metric" if self.depth.use_scale else "no-scale")
+        if self.vo_only:
+            return "vo-only"
+        return "metric" if self.use_scale or self.use_ground else "no-scale"
 
     def vo_config(self, default_preset: str = DEFAULT_PRESET) -> VOConfig:
         """The resolved :class:`VOConfig`: ``vo.preset`` (else ``default_preset``) with

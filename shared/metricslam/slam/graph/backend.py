@@ -49,15 +49,28 @@ class GlobalBackend:
         config: graph, loop and threading parameters.
         depth_source: metric inverse depth provider, or None for no learned scale.
         loop_detector: a :class:`metricslam.slam.loop.LoopDetector` (or None: no loops).
+        ground_meter: a :class:`metricslam.slam.ground.meter.GroundScaleMeter` for ground-plane
+            scale factors (measured on the graph's thread, in keyframe order), or None.
     """
 
     def __init__(self, config: GraphConfig | None = None, depth_source: DepthSource | None = None,
-                 loop_detector: object | None = None) -> None:
+                 loop_detector: object | None = None, ground_meter: object | None = None) -> None:
         self.config = config or GraphConfig()
         self.depth_source = depth_source
+        self.ground_meter = ground_meter
         #: what the back end did (:mod:`metricslam.slam.events`): subscribe here to observe it
         self.events = EventBus()
-        self.estimator = GlobalEstimator(self.config, depth_source is not None, loop_detector, self.events)
+        ground_k = ground_meter.config.ground_huber_k if ground_meter is not None else None
+        #: learned vs ground scale per keyframe and the disagreement warning (with a ground meter)
+        self.scale_health = None
+        if ground_meter is not None:
+            from metricslam.slam.ground.health import ScaleHealth
+
+            self.scale_health = ScaleHealth(ground_meter.config.health, self.config.scale_sigma_log,
+                                            self.config.scale_huber_k)
+            self.scale_health.attach(self.events)
+        self.estimator = GlobalEstimator(self.config, depth_source is not None, loop_detector, self.events,
+                                         ground_huber_k=ground_k)
         self._lock = threading.RLock()  # one estimator call at a time
         self._cv = threading.Condition()  # guards the queues below and _busy/_stop
         self._incoming: collections.deque = collections.deque()  # (kf, epoch)
@@ -91,6 +104,7 @@ class GlobalBackend:
         if self.config.inline:
             with self._lock:
                 self.estimator.integrate(kf, epoch)
+                self._measure_ground(kf)
                 if self.depth_source is not None:
                     self.estimator.add_depth_result(kf.kf_id, *self._measure_scale(kf))
                 self.estimator.update()
@@ -148,9 +162,10 @@ class GlobalBackend:
 
     @property
     def scale_established(self) -> bool:
-        if self.depth_source is None:
+        if self.depth_source is None and self.ground_meter is None:
             return False
-        return self.estimator.scale_factors_solved >= self.config.min_scale_factors_established
+        solved = self.estimator.scale_factors_solved if self.depth_source is not None else 0
+        return solved + self.estimator.ground_factors_solved >= self.config.min_scale_factors_established
 
     @property
     def scale_factors_solved(self) -> int:
@@ -214,7 +229,13 @@ class GlobalBackend:
             "loop_ms_mean": est.loop_ms.mean_ms,
             "scale_established": self.scale_established,
             **(est.loop_detector.store_counters if est.loop_detector is not None else {}),
+            **(self._ground_stats() if self.ground_meter is not None else {}),
         }
+
+    def _ground_stats(self) -> dict:
+        meter = self.ground_meter
+        return {"ground_factors": self.estimator.graph.n_ground_factors, **meter.counts,
+                "ground_rejected_reasons": dict(meter.reasons), "scale_health": self.scale_health.snapshot()}
 
     # -- work ---------------------------------------------------------------------------------
     def _take_solved(self) -> None:
@@ -223,6 +244,20 @@ class GlobalBackend:
         if solved is not None:
             with self._corr_lock:
                 self._pending_correction = solved
+
+    def _measure_ground(self, kf: MarginalizedKeyframe) -> None:
+        """Road-plane scale of ``kf`` (caller holds ``_lock``; after ``integrate``), announced as
+        :class:`~metricslam.slam.events.GroundScaleMeasured`; accepted ones go to the estimator."""
+        if self.ground_meter is None:
+            return
+        try:
+            ev = self.ground_meter.measure(kf)
+        except MetricSlamError as exc:
+            log.warning("no ground scale for keyframe %d: %s", kf.kf_id, exc)
+            return
+        if ev.accepted:
+            self.estimator.add_ground_result(ev.kf_id, ev.scale, ev.sigma_log)
+        self.events.emit(ev)
 
     def _measure_scale(self, kf: MarginalizedKeyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Depth request -> (per-landmark scale measurements, the metric inverse-depth map
@@ -294,6 +329,7 @@ class GlobalBackend:
                 with self._lock:
                     for kf, epoch in incoming:
                         self.estimator.integrate(kf, epoch)
+                        self._measure_ground(kf)
                     for kf_id in dropped:
                         self.estimator.depth_dropped(kf_id)
                     for kf_id, scales, inv_map in results:

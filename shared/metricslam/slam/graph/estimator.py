@@ -60,15 +60,18 @@ class GlobalEstimator:
         use_scale: learned scale factors arrive (else the first keyframe's scale is anchored).
         loop_detector: a :class:`metricslam.slam.loop.LoopDetector`, or None (no loops).
         events: where :class:`~metricslam.slam.events.Solved` and ``LoopAccepted`` are emitted.
+        ground_huber_k: Huber threshold of ground-plane scale factors, which then arrive
+            (:meth:`add_ground_result`); None: none do. Either source frees the first scale.
     """
 
     def __init__(self, config: GraphConfig, use_scale: bool, loop_detector: object | None,
-                 events: EventBus) -> None:
+                 events: EventBus, ground_huber_k: float | None = None) -> None:
         self.config = config
         self.use_scale = use_scale
         self.loop_detector = loop_detector
         self.events = events
-        self.graph = GlobalPoseGraph(config, anchor_scale=not use_scale)
+        self.ground_huber_k = ground_huber_k
+        self.graph = GlobalPoseGraph(config, anchor_scale=not use_scale and ground_huber_k is None)
         self.history = VoFrameHistory()
         self.loops: list[LoopRecord] = []
         self.loops_verified = 0
@@ -81,6 +84,8 @@ class GlobalEstimator:
         self._last_of_segment: dict[int, int] = {}
         self._newest_kf: int | None = None
         self._pending_scales: dict[int, np.ndarray] = {}
+        self._pending_ground: dict[int, tuple[float, float]] = {}  # kf_id -> (scale, sigma_log)
+        self.ground_factors_solved = 0
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
@@ -134,6 +139,10 @@ class GlobalEstimator:
         if self.loop_detector is not None:
             self._depth_done[int(kf_id)] = inv_map
 
+    def add_ground_result(self, kf_id: int, scale: float, sigma_log: float) -> None:
+        """A keyframe's accepted road-plane scale ``h_mount_m / h_vo`` (m per keyframe unit)."""
+        self._pending_ground[int(kf_id)] = (float(scale), float(sigma_log))
+
     def depth_dropped(self, kf_id: int) -> None:
         """A keyframe's depth request was dropped (queue full): its loop query goes without."""
         self._depth_dropped_ids.add(int(kf_id))
@@ -161,6 +170,7 @@ class GlobalEstimator:
         """One incremental solve; verified loops are gated against it, added, and solved again."""
         t0 = time.perf_counter()
         n_before = self.graph.n_scale_factors
+        n_ground_before = self.graph.n_ground_factors
         try:
             res = self.graph.solve()
             if self._pending_loops:  # gate against the solved graph, then solve with the loops
@@ -179,6 +189,7 @@ class GlobalEstimator:
         solve_ms = 1e3 * (time.perf_counter() - t0)
         self.solve_ms.append(solve_ms)
         self.scale_factors_solved = n_before
+        self.ground_factors_solved = n_ground_before
         self._hand_over_newest()
         newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
         self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
@@ -209,6 +220,9 @@ class GlobalEstimator:
     def _flush_scales(self) -> None:
         for kf_id in [k for k in self._pending_scales if self.graph.has(k)]:
             self.graph.add_scale_measurements(kf_id, self._pending_scales.pop(kf_id))
+        for kf_id in [k for k in self._pending_ground if self.graph.has(k)]:
+            scale, sigma_log = self._pending_ground.pop(kf_id)
+            self.graph.add_ground_scale(kf_id, scale, sigma_log, self.ground_huber_k)
 
     def _run_loop_queries(self, final: bool) -> None:
         """Query loops for waiting keyframes, in order, once each has its depth map (scale mode;

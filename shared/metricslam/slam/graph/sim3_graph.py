@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 
 from metricslam.errors import GraphError
-from metricslam.slam.graph import batch_solve, scale_factor
+from metricslam.slam.graph import batch_solve, ground_factor, scale_factor
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
 
@@ -74,6 +74,7 @@ class GlobalPoseGraph:
         self._latest: dict[int, gtsam.Similarity3] = {}  # best known estimate per keyframe
         self._scale_noise = scale_factor.scale_noise(self.config)
         self.n_scale_factors = 0
+        self.n_ground_factors = 0
         self.n_loops_accepted = 0
         self.n_loops_rejected = 0
         self.n_rebuilds = 0
@@ -148,6 +149,15 @@ class GlobalPoseGraph:
                 self._add(f, "scale")
         self.n_scale_factors += int(s.size)
         return int(s.size)
+
+    def add_ground_scale(self, kf_id: int, scale: float, sigma_log: float, huber_k: float) -> None:
+        """Add keyframe ``kf_id``'s road-plane scale ``h_mount_m / h_vo`` (m per keyframe unit) as
+        one robust log-scale factor (:mod:`.ground_factor`)."""
+        if not self.has(kf_id):
+            raise GraphError(f"ground scale for unknown keyframe {kf_id}; add the keyframe first")
+        self._add(ground_factor.make_ground_scale_factor(key(kf_id), self._latest[int(kf_id)], scale,
+                                                         sigma_log, huber_k), "ground")
+        self.n_ground_factors += 1
 
     def add_loop(self, kf_old: int, kf_new: int, S_old_new: np.ndarray, sigmas: np.ndarray,
                  gate: bool = True) -> LoopDecision:
