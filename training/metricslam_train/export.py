@@ -151,7 +151,8 @@ def export_ensemble(ckpt_paths: list[str | Path], out_path: str | Path, model_id
     their L3 d_frac (:class:`EnsembleExportWrapper`); returns the contract written.
 
     The members must agree on everything the contract states (input size, normalization,
-    baseline, output range, camera contract); their training data is recorded once when equal.
+    baseline, output range, camera contract); their training data is recorded once when equal, and
+    the model id is the members' ids joined by ``+`` (each one a recipe in ``training/configs/``).
     A single checkpoint is exported as itself.
     """
     if len(ckpt_paths) == 1:
@@ -170,7 +171,7 @@ def export_ensemble(ckpt_paths: list[str | Path], out_path: str | Path, model_id
     ids = [str(c["meta"].get("model_id", "?")) for c in ckpts]
     meta = dict(first, training_data=data[0] if len(data) == 1 else " | ".join(data),
                 training_commit=",".join(sorted({str(c["meta"].get("training_commit", "unknown")) for c in ckpts})))
-    contract = contract_for(nets[0], meta, model_id or f"ensemble({'+'.join(ids)})")
+    contract = contract_for(nets[0], meta, model_id or "+".join(ids))
     contract = contract.model_copy(update={"params": sum(count_parameters(n) for n in nets)})
     export_onnx(nets, contract, out_path)
     return contract
