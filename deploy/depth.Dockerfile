@@ -3,7 +3,8 @@
 # zenoh, no renderer (numba, scikit-image); gtsam comes with the core's base set.
 # Serves the int8 depth_l3_int8.onnx by default; the float32 depth_l3.onnx is installed next to it
 # (DEPTH_MODEL_PATH=/usr/local/lib/python3.11/site-packages/metricslam/models/depth_l3.onnx).
-# Build from the repository root:  docker build -f deploy/depth.Dockerfile -t metricslam-depth .
+# Build from the repository root:  docker build -f deploy/depth.Dockerfile -t metricslam-depth:0.1.0 .
+# (tag with the project's version, pyproject.toml; docker-compose.yml and deploy/k8s use it)
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1

@@ -4,7 +4,9 @@
   typed parser — unknown keys, wrong types and dangling references are errors);
 * every build context, Dockerfile and COPY source exists;
 * images never install torch; settings in ``environment`` are real settings fields;
-* the long-running services have health checks; depth runs replicated behind the LB.
+* the long-running services have health checks; depth runs replicated behind the LB;
+* the effective limits: every service has CPU and memory limits, nginx's body limit is at least
+  the depth service's largest accepted request, no image is ``:latest``.
 """
 
 from __future__ import annotations
@@ -98,22 +100,25 @@ def test_builds_and_copy_sources_exist(compose: dict, repo_root: Path) -> None:
                 assert (repo_root / host).exists(), host
 
 
-@pytest.mark.parametrize(("dockerfile", "extra", "not_there"), [
+@pytest.mark.parametrize(("dockerfile", "extras", "not_there"), [
     ("depth.Dockerfile", "depth-service", ("eclipse-zenoh", "httpx")),
-    ("slam.Dockerfile", "slam-service", ("fastapi", "uvicorn")),
+    # the ros extra: what SLAM_ROS2=1 needs (rosbags, mcap), so the variable works in the image
+    ("slam.Dockerfile", "slam-service,ros", ("fastapi", "uvicorn")),
 ])
-def test_images_install_their_component_extra(repo_root: Path, dockerfile: str, extra: str,
+def test_images_install_their_component_extra(repo_root: Path, dockerfile: str, extras: str,
                                                not_there: tuple[str, ...]) -> None:
-    """Each image installs the core's base dependencies plus its own extra, no package by hand;
+    """Each image installs the core's base dependencies plus its own extras, no package by hand;
     neither carries torch, the renderer (numba, scikit-image), matplotlib nor the viewer."""
     import tomllib
 
     project = tomllib.loads((repo_root / "pyproject.toml").read_text())["project"]
     text = (repo_root / "deploy" / dockerfile).read_text()
     installs = [ln for ln in text.splitlines() if ln.startswith("RUN") and "pip install" in ln]
-    assert len(installs) == 1 and f'pip install ".[{extra}]"' in installs[0], installs
-    packages = [re.split(r"[\[<>=~! ;]", d, maxsplit=1)[0].lower()
-                for d in project["dependencies"] + project["optional-dependencies"][extra]]
+    assert len(installs) == 1 and f'pip install ".[{extras}]"' in installs[0], installs
+    deps = list(project["dependencies"])
+    for extra in extras.split(","):
+        deps += project["optional-dependencies"][extra]
+    packages = [re.split(r"[\[<>=~! ;]", d, maxsplit=1)[0].lower() for d in deps]
     for name in ("torch", "numba", "scikit-image", "matplotlib", "rerun-sdk", *not_there):
         assert name not in packages, f"{dockerfile}: {name} would be installed"
 
@@ -164,3 +169,60 @@ def test_slam_healthcheck_fails_without_a_router() -> None:
     out = subprocess.run([sys.executable, "-m", "metricslam_slam.supervisor.healthcheck", "--zenoh-endpoint",
                           "tcp/127.0.0.1:17499"], capture_output=True, timeout=60)
     assert out.returncode == 1
+
+
+def _bytes(size: str) -> int:
+    """nginx size syntax (``16m``, ``512k``, ``1g``, bytes) in bytes."""
+    m = re.fullmatch(r"(\d+)([kKmMgG]?)", size)
+    assert m, size
+    return int(m[1]) * {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3}[m[2].lower()]
+
+
+def test_every_service_has_cpu_and_memory_limits(compose: dict) -> None:
+    for name, service in compose["services"].items():
+        limits = service.get("deploy", {}).get("resources", {}).get("limits", {})
+        assert float(limits.get("cpus", 0)) > 0, f"{name}: no CPU limit"
+        assert re.fullmatch(r"\d+[MG]", str(limits.get("memory", ""))), f"{name}: no memory limit"
+
+
+def test_nginx_body_limit_covers_the_largest_depth_request(compose: dict, repo_root: Path, monkeypatch) -> None:
+    """A request the depth service (as compose configures it) would accept is never cut off by
+    nginx's HTML 413: the service answers what is too large itself, in problem+json."""
+    for name, value in compose["services"]["depth"]["environment"].items():
+        monkeypatch.setenv(name, str(value))
+    depth = DepthServiceSettings()
+    nginx = (repo_root / "deploy" / "nginx-depth.conf").read_text()
+    (size,) = re.findall(r"^\s*client_max_body_size\s+(\S+);", nginx, flags=re.M)
+    largest = max(depth.max_body_bytes, depth.max_batch_body_bytes)
+    assert _bytes(size) >= largest, f"nginx client_max_body_size {size} < {largest} B the service accepts"
+    assert _bytes("16m") < largest  # the former limit, which cut large batches off
+
+
+def test_images_are_pinned_never_latest(compose: dict, repo_root: Path) -> None:
+    import metricslam
+
+    raw = (repo_root / "docker-compose.yml").read_text()
+    for name, service in compose["services"].items():
+        image = service["image"]
+        assert ":" in image and not image.endswith(":latest"), f"{name}: {image}"
+    built = {name: s["image"] for name, s in compose["services"].items() if "build" in s}
+    assert {image.split(":")[1] for image in built.values()} == {metricslam.__version__}
+    assert "${METRICSLAM_VERSION:-" + metricslam.__version__ + "}" in raw
+    assert yaml.safe_load(interpolate(raw, {"METRICSLAM_VERSION": "9.9.9"}))["services"]["slam"]["image"] \
+        == "metricslam-slam:9.9.9"
+
+
+def test_router_health_check_and_hung_slam_restart(compose: dict) -> None:
+    """The router has a health check; the SLAM service's watchdog is on, so a hung service exits
+    and ``restart: unless-stopped`` restarts it (compose never restarts an unhealthy container)."""
+    services = compose["services"]
+    zenoh = services["zenoh"]
+    assert "healthcheck" in zenoh and zenoh["healthcheck"]["test"][0] == "CMD"
+    rest = zenoh["command"][zenoh["command"].index("--rest-http-port") + 1]
+    assert rest.startswith("127.0.0.1:")  # the REST admin interface stays inside the container
+    assert rest.split(":")[1] in " ".join(zenoh["healthcheck"]["test"])
+    slam = services["slam"]
+    env = {k: str(v) for k, v in slam["environment"].items()}
+    assert float(env["SLAM_HANG_TIMEOUT_S"]) > 0 and env["SLAM_HEARTBEAT_FILE"]
+    for service in services.values():
+        assert service["restart"] == "unless-stopped"

@@ -166,3 +166,41 @@ def test_compose_file_validates_against_the_compose_spec_schema(repo_root: Path)
     assert not errors, [e.message for e in errors]
     compose["services"]["depth"]["healthcheck"]["intervall"] = "10s"  # a typo must be caught
     assert any(validator.iter_errors(compose))
+
+
+def test_every_container_has_limits_and_a_pinned_image(docs: list[dict], kustomization: dict) -> None:
+    import metricslam
+
+    for w in (d for d in docs if d["kind"] in ("Deployment", "StatefulSet")):
+        for c in w["spec"]["template"]["spec"]["containers"]:
+            assert c["resources"]["limits"]["cpu"] and c["resources"]["limits"]["memory"], c["name"]
+            image = c["image"]
+            assert not image.endswith(":latest"), image
+    tags = {i["name"]: i["newTag"] for i in kustomization["images"]}
+    assert tags == {"metricslam-depth": metricslam.__version__, "metricslam-slam": metricslam.__version__}
+
+
+def test_slam_liveness_probe_is_local_and_works(docs: list[dict], tmp_path: Path) -> None:
+    """The StatefulSet's liveness probe checks the watchdog's heartbeat file, not the router (a
+    router outage must not restart SLAM); the command it runs answers 0 with a fresh heartbeat and
+    1 with a stale one."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from metricslam_slam.service.watchdog import write_heartbeat
+
+    (c,) = by_kind(docs, "StatefulSet", "slam")["spec"]["template"]["spec"]["containers"]
+    command = c["livenessProbe"]["exec"]["command"]
+    assert "--alive" in command and "--zenoh-endpoint" not in command
+    env = {e["name"]: e["value"] for e in c["env"]}
+    assert float(env["SLAM_HANG_TIMEOUT_S"]) > 0
+    beat = tmp_path / "alive"
+    run_env = {**os.environ, "SLAM_HEARTBEAT_FILE": str(beat),
+               "SLAM_ZENOH_ENDPOINT": "tcp/127.0.0.1:1"}
+    cmd = [sys.executable if part == "python" else part for part in command]
+    write_heartbeat(beat)
+    assert subprocess.run(cmd, env=run_env, capture_output=True, timeout=60).returncode == 0
+    write_heartbeat(beat, now_s=time.time() - 3600)
+    assert subprocess.run(cmd, env=run_env, capture_output=True, timeout=60).returncode == 1

@@ -170,7 +170,7 @@ def test_find_images_layouts_stride_and_cap(tmp_path):
 def test_cli_quantize_writes_a_loadable_model(calib_dir, synth_sequence, tmp_path, capsys):
     out = tmp_path / "cli_int8.onnx"
     held_out = synth_sequence(8, seed=9) / "image_0" / "000004.png"
-    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib", str(calib_dir), "--max-images", "2",
+    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib-images", str(calib_dir), "--max-images", "2",
                  "--out", str(out), "--check", str(held_out)]) == 0
     printed = capsys.readouterr().out
     assert "int8-static" in printed and "int8 vs float32 on 1 images: |log(d_int8 / d_fp32)| median" in printed
@@ -183,7 +183,8 @@ def test_cli_quantize_refuses_a_folder_without_images(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     out = tmp_path / "never.onnx"
-    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib", str(empty), "--out", str(out)]) == 1
+    with pytest.warns(FutureWarning, match="--calib is deprecated.*--calib-images"):  # the former name works
+        assert main(["quantize", str(FLOAT32_MODEL_PATH), "--calib", str(empty), "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert str(empty) in err and "holds no image" in err and "KITTI sequence folder" in err
     assert not out.exists()
@@ -209,3 +210,8 @@ def test_a_canonical_camera_model_quantizes_and_keeps_its_contract(calib_dir, he
     assert q.contract.contract_version == "2" and q.contract.canonical_fx_px == pytest.approx(296.58)
     agreement = compare_models(DepthModel.load(src), q, [held_out_image])
     assert agreement.median < MEDIAN_ABS_LOG_RATIO_TOL
+
+
+def test_cli_quantize_needs_calibration_images(tmp_path, capsys):
+    assert main(["quantize", str(FLOAT32_MODEL_PATH), "--out", str(tmp_path / "never.onnx")]) == 1
+    assert "pass --calib-images" in capsys.readouterr().err

@@ -101,7 +101,7 @@ class _TruthGroundMeter:
         self.counts = {"ground_measured": 0, "ground_accepted": 0}
         self.reasons: dict[str, int] = {}
 
-    def measure(self, kf):
+    def measure(self, kf, scale_of=None):
         self.counts["ground_measured"] += 1
         k = int(kf.kf_id)
         if k == 0 or k % self.every:

@@ -304,3 +304,96 @@ def test_ros_image_input_waits_for_camera_info(ros_stack) -> None:
     stats = svc.health()["ros2"]["inputs"]["rosc"]
     assert stats["camera_info"] and stats["refused_without_camera_info"] == 1
     recorder.close()
+
+
+def _tf_cdr(payload: bytes) -> list[tuple[tuple[int, int, str], str, np.ndarray]]:
+    """tf2_msgs/TFMessage by the independent reader: [(header, child_frame_id, pose7)]."""
+    r = CdrReader(payload)
+    out = [(r.header(), r.string(), r.f64s(7)) for _ in range(r.u32())]
+    r.done()
+    return out
+
+
+def test_tf_world_to_camera_for_every_pose(ros_stack) -> None:
+    """A subscriber built from the published key expression (any type hash) gets one ``/tf``
+    transform ``cam0/world`` -> ``cam0/camera_optical`` per pose, stamped like the pose, with the
+    pose's value, as the MCAP recordings carry it; the token advertises tf2_ros's keep-last 100."""
+    client, svc = ros_stack
+    tf = _subscribe(client, f"7/tf/{dds_type_name('tf2_msgs/msg/TFMessage')}/*")
+    recorder = PoseRecorder(client, "cam0")
+    time.sleep(0.3)
+    pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
+    stamps = [1_000_000_000 + i * 100_000_000 for i in range(4)]
+    for i, t_ns in enumerate(stamps):
+        pub.publish(i, t_ns, np.zeros((48, 64), np.uint8), CAMERA)
+    assert recorder.wait_frames(4, 10)
+    assert _wait(lambda: len(tf) > 4), f"{len(tf) - 1} /tf messages for 4 poses"
+    got = [_tf_cdr(payload) for _, payload, _ in tf[1:]]
+    assert [len(m) for m in got] == [1, 1, 1, 1]
+    assert [m[0][0] for m in got] == [(t // 10**9, t % 10**9, "cam0/world") for t in stamps]
+    for (_, child, pose7), i in zip((m[0] for m in got), range(4)):
+        assert child == "cam0/camera_optical"
+        _check_pose(pose7, recorder.poses[i].T_world_cam)
+    tokens = [str(rep.ok.key_expr) for rep in client.liveliness().get("@ros2_lv/7/**", timeout=2) if rep.ok]
+    (tf_token,) = [t for t in tokens if "/MP/" in t and "/%tf/" in t]
+    assert tf_token.endswith("/::,100:,:,:,,")
+    recorder.close()
+
+
+def test_keyframe_depth_has_a_camera_info_at_its_own_resolution(ros_stack) -> None:
+    """The depth image and its CameraInfo pair as image_transport pairs them (siblings), and the
+    CameraInfo is the grid's: its size, K scaled so pixel centres map to pixel centres."""
+    from metricslam.wire.map_messages import KeyframeDepthMessage
+    from metricslam_slam.service.ros2_bridge import depth_camera
+
+    client, svc = ros_stack
+    base = "7/metricslam/cam0/keyframe/depth"
+    images = _subscribe(client, f"{base}/image/{dds_type_name(IMAGE)}/*")
+    infos = _subscribe(client, f"{base}/camera_info/{dds_type_name(CAMERA_INFO)}/*")
+    recorder = PoseRecorder(client, "cam0")
+    time.sleep(0.3)
+    pub = FramePublisher(client, "cam0")
+    assert pub.wait_for_subscriber(10)
+    pub.publish(0, 0, np.zeros((48, 64), np.uint8), CAMERA)  # the service learns the intrinsics
+    assert recorder.wait_frames(1, 10)
+    inv = np.full((12, 16), 0.25, np.float32)
+    inv[0, 0] = 0.0  # unknown
+    svc.ros2.forward("cam0", "keyframe_depth", KeyframeDepthMessage(
+        camera_id="cam0", frame_index=0, t_ns=2_000_000_000, image_width_px=64, image_height_px=48,
+        inv_depth_per_m=inv))
+    assert _wait(lambda: len(images) > 1 and len(infos) > 1)
+    image = deserialize(images[1][1], IMAGE)
+    info = deserialize(infos[1][1], CAMERA_INFO)
+    assert (image.height, image.width, image.encoding) == (12, 16, "32FC1")
+    assert (info.height, info.width) == (12, 16)
+    assert image.header.frame_id == info.header.frame_id == "cam0/camera_optical"
+    assert messages.stamp_ns(image.header) == messages.stamp_ns(info.header) == 2_000_000_000
+    depth = np.frombuffer(bytes(image.data), np.float32).reshape(12, 16)
+    assert np.isnan(depth[0, 0]) and np.allclose(depth.ravel()[1:], 4.0)
+    grid = depth_camera(CAMERA, KeyframeDepthMessage(
+        camera_id="cam0", frame_index=0, t_ns=0, image_width_px=64, image_height_px=48, inv_depth_per_m=inv))
+    np.testing.assert_allclose(np.asarray(info.k).reshape(3, 3), grid.K)
+    # a point projects onto the same place of the image in both: grid px = image px scaled (centres)
+    p = np.array([[0.3, -0.2, 2.0]])
+    uv_image, uv_grid = CAMERA.project(p)[0], grid.project(p)[0]
+    np.testing.assert_allclose((uv_grid + 0.5) * 4.0 - 0.5, uv_image, atol=1e-9)
+    recorder.close()
+
+
+def test_ros2_without_rosbags_fails_at_start_naming_the_extra(monkeypatch) -> None:
+    from metricslam.errors import ConfigError
+    from metricslam.ros2 import typestore as typestore_module
+    from metricslam_slam.service.ros2_bridge import Ros2Bridge
+
+    def missing():
+        raise ConfigError("ROS 2 messages need rosbags: pip install 'metricslam[ros]'")
+
+    monkeypatch.setattr("metricslam_slam.service.ros2_bridge.typestore", missing)
+    assert typestore_module.typestore() is not None  # the real one is untouched
+    with pytest.raises(ConfigError, match=r"SLAM_ROS2=1.*metricslam\[ros\]"):
+        Ros2Bridge.check_available()
+    settings = SlamServiceSettings(zenoh_endpoint="tcp/127.0.0.1:1", depth_url=None, session_kind="identity",
+                                   ros2=True)
+    with pytest.raises(ConfigError, match="SLAM_ROS2=1"):
+        SlamService(settings, config=SystemConfig(depth={"use_scale": False})).start(connect_timeout_s=0.1)

@@ -21,6 +21,7 @@ import logging
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
 from metricslam_cli.extras import require
+from metricslam_cli.scale_options import add_scale_options, log_scale_sources, scale_flags
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -43,8 +44,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--cy", type=float, help="principal point y (px); default = image centre")
     p.add_argument("--max-rate", type=float, default=30.0, metavar="HZ", help="publish at most this often")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
+    add_scale_options(p)
     p.set_defaults(func=run)
     return p
+
+
+def check_scale_flags(args: argparse.Namespace, calibration_mount_height_m: float | None = None):
+    """The :class:`~metricslam.slam.system_config.SystemConfig` whose ``scale`` section the
+    calibration file's ``mount_height_m`` and ``--scale-sources`` / ``--mount-height`` give,
+    checked as ``run`` checks them (ConfigError before the device opens). Frames do not carry
+    them yet: give the same values to the SLAM service (``up`` / ``slam-service``)."""
+    from metricslam.slam.config_file import load_system_config
+    from metricslam.slam.system_config import LIVE_PROFILE
+
+    profile, overrides = scale_flags(args, calibration_mount_height_m)
+    return load_system_config(None, profile={**LIVE_PROFILE, **profile}, overrides=overrides)
 
 
 def check_intrinsics_flags(args: argparse.Namespace) -> None:
@@ -112,11 +126,13 @@ def run(args: argparse.Namespace) -> int:
     from metricslam_slam.zenoh_config import open_client
 
     check_intrinsics_flags(args)
+    calib_height = None
     if args.calib:  # a broken file is an error before the device opens
         from metricslam.calibration import load_calibration
 
-        load_calibration(args.calib)
+        calib_height = load_calibration(args.calib).mount_height_m
     log = logging.getLogger("metricslam.camera")
+    log_scale_sources(check_scale_flags(args, calib_height), log)
     source = int(args.device) if args.device.isdigit() else args.device
     capture = cv2.VideoCapture(source)
     if not capture.isOpened():

@@ -22,7 +22,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="where the sequence, poses, metrics.json and trajectory.png go "
                    "(default: <tmp>/metricslam-demo)")
     p.add_argument("--frames", type=int, default=200, help="sequence length (10 Hz)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the generated world and path")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="replay rate")
     p.add_argument("--no-scale", action="store_true", help="baseline without learned scale")
     p.set_defaults(func=run)

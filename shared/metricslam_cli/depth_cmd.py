@@ -25,7 +25,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--calib", metavar="FILE.yaml",
                    help="camera calibration instead of --fx/--fy/--cx/--cy (metricslam, OpenCV FileStorage "
                         "or EuRoC sensor.yaml YAML; docs/calibration.md); distortion is undone first")
-    p.add_argument("--out", required=True, help="output .npy: (h, w) float32 depth in metres")
+    p.add_argument("--out", required=True,
+                   help="output .npy: (h, w) float32 depth in metres; an existing folder (or a path "
+                        "ending in /): written inside it as <IMAGE stem>.depth.npy")
     p.add_argument("--png", help="optional coloured visualization (inverse depth, near = bright)")
     p.add_argument("--model", help="ONNX model (default: the shipped int8 depth_l3_int8.onnx; its float32 "
                                    "source depth_l3.onnx lies next to it in metricslam/models/)")
@@ -55,6 +57,26 @@ def image_camera(args: argparse.Namespace, width_px: int, height_px: int):
     return intrinsics(width_px, height_px, args.fx, args.fy, args.cx, args.cy), None
 
 
+def out_path(out: str, image: str):
+    """Where ``--out`` writes: ``out`` itself, or ``out/<image stem>.depth.npy`` when ``out`` is
+    an existing folder or ends with a path separator (never "a file named like the folder").
+
+    Raises:
+        ConfigError: ``out`` exists and is neither a file nor a folder.
+    """
+    import os
+    from pathlib import Path
+
+    from metricslam.errors import ConfigError
+
+    path = Path(out)
+    if path.is_dir() or out.endswith((os.sep, "/")):
+        return path / f"{Path(image).stem}.depth.npy"
+    if path.exists() and not path.is_file():
+        raise ConfigError(f"--out {out} exists and is not a file: give a .npy path or a folder")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -64,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.depth.model import DepthModel
     from metricslam.errors import ImageError
 
+    out = out_path(args.out, args.image)  # before any work
     bgr = cv2.imread(str(args.image), cv2.IMREAD_UNCHANGED)
     if bgr is None:
         raise ImageError(f"cannot read image {args.image}: give a PNG or JPEG file")
@@ -78,7 +101,6 @@ def run(args: argparse.Namespace) -> int:
     model = DepthModel.load(args.model, threads=args.threads)
     result = model.predict_inv_depth(image, camera=camera)
     depth_m = result.depth_m()
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out, depth_m)
     if args.png:

@@ -4,10 +4,14 @@ Example::
 
     metricslam poses --zenoh-endpoint tcp/127.0.0.1:7447 --out est.txt --frames 300 --timeout 120
     metricslam poses --out est.txt --frames 300 --mcap live.mcap   # plus an MCAP file for Foxglove
+    metricslam poses --out est.txt                                  # until Ctrl-C
 
 Writes one line per frame in frame order (KITTI: 3x4 ``T_world_cam`` row-major; TUM:
 ``t tx ty tz qx qy qz qw``). ``--trajectory`` writes the service's optimized trajectory
 (queried at the end) instead of the live poses. Fails if fewer than ``--frames`` poses arrived.
+Without ``--frames`` it records until Ctrl-C (or ``--timeout``) and writes frames 0 up to the
+last one that arrived (frames missing among them are reported, not an error: nobody said how many
+to expect).
 
 Only poses with a metric scale are recorded: ``provisional`` (the initial estimate, or fewer
 learned scale factors than needed to call it established) and ``metric``. ``unscaled`` poses
@@ -28,18 +32,27 @@ import argparse
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
 from metricslam_cli.extras import require
 
+#: --timeout with --frames
+DEFAULT_TIMEOUT_S = 120.0
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "poses", help="record live poses from zenoh into a KITTI/TUM file",
-        description="Subscribes to metricslam/<camera_id>/pose until --frames poses arrived or "
-        "--timeout passed, and writes them in frame order.")
-    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
-    p.add_argument("--out", required=True, metavar="FILE")
-    p.add_argument("--frames", type=int, required=True, metavar="N", help="poses to wait for")
-    p.add_argument("--timeout", type=float, default=120.0, metavar="S")
-    p.add_argument("--format", choices=("kitti", "tum"), default="kitti")
-    p.add_argument("--camera-id", default="cam0", metavar="ID")
+        description="Subscribes to metricslam/<camera_id>/pose until --frames poses arrived, "
+        "--timeout passed or Ctrl-C, and writes them in frame order.")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP",
+                   help="zenoh router to subscribe through")
+    p.add_argument("--out", required=True, metavar="FILE", help="trajectory file to write")
+    p.add_argument("--frames", type=int, metavar="N",
+                   help="poses (frames 0..N-1) to wait for; fails if some never arrive (default: none, "
+                        "record until Ctrl-C or --timeout)")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help=f"give up waiting after S seconds (default: {DEFAULT_TIMEOUT_S:g} with --frames, "
+                        "no limit without)")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
+                   help="kitti: 3x4 T_world_cam per line, one line per frame; tum: t tx ty tz qx qy qz qw")
+    p.add_argument("--camera-id", default="cam0", metavar="ID", help="the camera whose poses to record")
     p.add_argument("--all", dest="include_unscaled", action="store_true",
                    help="also record unscaled poses (the VO's arbitrary units); by default they are "
                         "skipped and counted (KITTI: a placeholder line each, TUM: left out)")
@@ -69,9 +82,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         recorder = PoseRecorder(session, args.camera_id, map_topics=bool(args.mcap))
         health_before = query_health(session, timeout_s=2.0)
-        print(f"recording metricslam/{args.camera_id}/pose ...", flush=True)
-        recorder.wait_frames(args.frames, args.timeout)
-        if args.mcap:  # the last keyframe's landmarks, depth and path follow its pose
+        print(f"recording metricslam/{args.camera_id}/pose ..."
+              + (" (Ctrl-C to stop)" if args.frames is None else ""), flush=True)
+        interrupted = _record(recorder, args.frames, args.timeout)
+        if args.mcap and not interrupted:  # the last keyframe's landmarks, depth and path follow its pose
             time.sleep(1.0)
         recorder.close()
         statuses = recorder.statuses_so_far()
@@ -81,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
             trajectory = settled_trajectory(lambda: query_trajectory(session, args.camera_id))
     finally:
         session.close()
+    n_frames = args.frames if args.frames is not None else _frames_seen(recorder.poses, trajectory)
     for detail in new_sessions(statuses):
         print(f"the SLAM service started a {detail} (camera {args.camera_id})", flush=True)
     if restart is not None:
@@ -88,17 +103,46 @@ def run(args: argparse.Namespace) -> int:
     if args.mcap:  # before the pose file, which fails when frames are missing
         counts = write_mcap(args.mcap, args.camera_id, recorder, trajectory)
         print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
-    unscaled = unscaled_frames(recorder.poses, trajectory, args.frames)
+    unscaled = unscaled_frames(recorder.poses, trajectory, n_frames)
     skip = [] if args.include_unscaled else unscaled
-    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, args.frames, skip, missing_ok=True)
-    print(f"wrote {n_written} poses to {args.out} ({_states(recorder.poses, trajectory, args.frames)})")
+    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, n_frames, skip, missing_ok=True)
+    print(f"wrote {n_written} poses to {args.out} ({_states(recorder.poses, trajectory, n_frames)})")
     where = "left out" if args.format == "tum" else "a placeholder line each"
     if skip:
         print(f"skipped {len(skip)} unscaled poses (frames {_ranges(skip)}; {where}); --all records them")
-    missing = missing_frames(recorder.poses, trajectory, args.frames)
-    if missing:  # what arrived is written; the run still fails, naming what did not
+    missing = missing_frames(recorder.poses, trajectory, n_frames)
+    if missing and args.frames is None:  # nothing was expected: say what is missing, no failure
+        print(f"{len(missing)} of frames 0-{n_frames - 1} have no pose (frames {_ranges(missing)}; {where}; "
+              "sent before the recording started?)")
+    elif missing:  # what arrived is written; the run still fails, naming what did not
         raise missing_error(missing, args.frames, restart)
     return 0
+
+
+def _record(recorder, n_frames: int | None, timeout_s: float | None) -> bool:
+    """Wait for ``n_frames`` poses (None: until Ctrl-C) or ``timeout_s`` (None: the default with
+    ``n_frames``, no limit without). True if Ctrl-C ended it (then the poses so far are kept)."""
+    import time
+
+    if timeout_s is None and n_frames is not None:
+        timeout_s = DEFAULT_TIMEOUT_S
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    done = (lambda r: False) if n_frames is None else (lambda r: len(r.poses) >= n_frames)
+    try:
+        while deadline is None or time.monotonic() < deadline:
+            left = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
+            if recorder.wait_for(done, max(left, 0.0)):
+                return False
+    except KeyboardInterrupt:
+        print("stopped (Ctrl-C); writing what arrived", flush=True)
+        return True
+    return False
+
+
+def _frames_seen(poses: dict, trajectory) -> int:
+    """Frames 0..K-1 up to the last one that has a pose (live, or in the optimized trajectory)."""
+    indices = list(poses) if trajectory is None else [int(i) for i in trajectory.frame_index]
+    return max(indices) + 1 if indices else 0
 
 
 def _states(poses: dict, trajectory, n_frames: int) -> str:

@@ -1,4 +1,4 @@
-"""``metricslam quantize MODEL.onnx --calib DIR_OR_GLOB [--calib ...] --out OUT.onnx``.
+"""``metricslam quantize MODEL.onnx --calib-images DIR_OR_GLOB [--calib-images ...] --out OUT.onnx``.
 
 Static int8 quantization of a float32 depth model (onnxruntime; per-channel int8 weights, uint8
 activations calibrated on images preprocessed as at inference). The output keeps the model's
@@ -12,15 +12,19 @@ kitti_raw_lidar): that leaks the test images into the model.
 Example (the shipped depth_l3_int8.onnx, the default model since it runs ~2x faster)::
 
     metricslam quantize shared/metricslam/models/depth_l3.onnx \\
-        --calib ../shared/data/kitti_odometry/sequences/01 \\
-        --calib 'runs/synth_train/w20[0-4]*/image_0/000000.png' --stride 3 \\
+        --calib-images ../shared/data/kitti_odometry/sequences/01 \\
+        --calib-images 'runs/synth_train/w20[0-4]*/image_0/000000.png' --stride 3 \\
         --out shared/metricslam/models/depth_l3_int8.onnx
+
+``--calib`` was this option's former name; everywhere else ``--calib`` is a camera calibration
+YAML, so it was renamed. ``--calib`` still works in this release, with a warning.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import warnings
 
 log = logging.getLogger("metricslam.quantize")
 
@@ -33,10 +37,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", help="float32 metricslam depth model (ONNX; the shipped one is "
                                  "metricslam/models/depth_l3.onnx, not the int8 default)")
-    p.add_argument("--calib", action="append", required=True, metavar="DIR_OR_GLOB",
-                   help="calibration images, TRAINING data only (never KITTI 06 or kitti_raw_lidar): a "
+    p.add_argument("--calib-images", action="append", metavar="DIR_OR_GLOB",
+                   help="calibration images (required), TRAINING data only (never KITTI 06 or kitti_raw_lidar): a "
                         "KITTI-layout sequence folder (its image_0/), a folder of images, an image file or a "
                         "quoted glob of them; repeat for more sources")
+    p.add_argument("--calib", dest="calib_deprecated", action="append", metavar="DIR_OR_GLOB",
+                   help="deprecated name of --calib-images (warns; removed in the next release)")
     p.add_argument("--stride", type=int, default=1, help="every N-th image of each folder (default 1)")
     p.add_argument("--max-images", type=int, help="at most N calibration images, evenly spaced")
     p.add_argument("--format", choices=["QDQ", "QOperator"], default="QDQ",
@@ -51,6 +57,26 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def calibration_sources(args: argparse.Namespace) -> list[str]:
+    """The ``--calib-images`` sources, and those of the deprecated ``--calib`` (with a
+    :class:`FutureWarning`, which Python shows by default).
+
+    Raises:
+        ConfigError: neither was given.
+    """
+    from metricslam.errors import ConfigError
+
+    sources = list(args.calib_images or [])
+    if args.calib_deprecated:
+        warnings.warn("metricslam quantize --calib is deprecated (everywhere else --calib is a camera "
+                      "calibration YAML): use --calib-images; --calib will be removed in the next release",
+                      FutureWarning, stacklevel=2)
+        sources += args.calib_deprecated
+    if not sources:
+        raise ConfigError("no calibration images: pass --calib-images DIR_OR_GLOB (training images of the model)")
+    return sources
+
+
 def run(args: argparse.Namespace) -> int:
     from metricslam.depth.model import DepthModel
     from metricslam.depth.quantize import (
@@ -60,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         quantize_model,
     )
 
-    images = find_images(args.calib, stride=args.stride, max_images=args.max_images)
+    images = find_images(calibration_sources(args), stride=args.stride, max_images=args.max_images)
     suspicious = sorted({str(p.parent) for p in images
                          if any(m in p.resolve().as_posix() for m in EVALUATION_MARKERS)})
     if suspicious:

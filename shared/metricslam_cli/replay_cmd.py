@@ -34,10 +34,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "replay", help="publish a sequence folder as zenoh frames",
         description="Publishes a dataset folder (KITTI, EuRoC, TUM, synth output) frame by frame "
         "on metricslam/<camera_id>/frame at --rate Hz, then exits.")
-    p.add_argument("seq_dir", metavar="SEQ_DIR")
-    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP")
+    p.add_argument("seq_dir", metavar="SEQ_DIR",
+                   help="dataset folder: KITTI sequence, EuRoC mav0, TUM RGB-D or `metricslam synth` output")
+    p.add_argument("--zenoh-endpoint", default=DEFAULT_ZENOH_ENDPOINT, metavar="EP",
+                   help="zenoh router to publish through")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (0: as fast as possible)")
-    p.add_argument("--camera-id", default="cam0", metavar="ID")
+    p.add_argument("--camera-id", default="cam0", metavar="ID",
+                   help="camera id of the frames (metricslam/<ID>/frame): one SLAM session per id")
     p.add_argument("--calib", metavar="FILE.yaml",
                    help="camera calibration replacing the reader's (as `run --calib`; "
                         "docs/calibration.md); frames are undistorted before they are published")
@@ -58,7 +61,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="first reset the camera id: the SLAM service starts a fresh session at its next "
                         "frame instead of continuing its earlier trajectory (one starts anyway when the "
                         "frame indices or timestamps go back)")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
 

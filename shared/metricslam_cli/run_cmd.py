@@ -61,16 +61,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "run",
         help="run SLAM offline on a sequence folder and write its trajectory",
         description="Runs the local VO and the global Sim(3) graph in-process on a sequence "
-        "folder (KITTI odometry, EuRoC, TUM, metricslam synth output), writing one KITTI pose "
-        "line per input frame and optional run statistics. By default learned scale factors "
+        "folder (KITTI odometry, EuRoC MAV, TUM RGB-D, metricslam synth output), writing one KITTI "
+        "pose line per input frame (or a TUM trajectory file, --format tum) and optional run statistics. By default learned scale factors "
         "make the trajectory metric; --no-scale is the geometric baseline.",
     )
-    p.add_argument("seq_dir", metavar="SEQ_DIR", help="sequence folder")
+    p.add_argument("seq_dir", metavar="SEQ_DIR",
+                   help="sequence folder: KITTI odometry (image_0/), EuRoC MAV (mav0/), TUM RGB-D (rgb.txt), "
+                        "or `metricslam synth` output")
     p.add_argument("--out", required=True, metavar="EST.txt", help="pose file to write")
     p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
                    help="kitti (default): one line per input frame, a placeholder for a frame "
                         "without a pose (listed in --json); tum: timestamped lines, frames without "
-                        "a pose left out")
+                        "a pose left out (the TUM RGB-D trajectory format: t tx ty tz qx qy qz qw)")
     p.add_argument("--json", metavar="STATS.json", help="write run statistics as JSON")
     p.add_argument("--calib", metavar="FILE.yaml",
                    help="camera calibration (metricslam, OpenCV FileStorage or EuRoC sensor.yaml "

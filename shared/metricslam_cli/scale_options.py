@@ -24,7 +24,7 @@ def add_scale_options(p: argparse.ArgumentParser) -> None:
 
 def scale_flags(args: argparse.Namespace, calibration_mount_height_m: float | None = None) -> tuple[dict, dict]:
     """``(profile, overrides)`` layers for :func:`~metricslam.slam.config_file.load_system_config`:
-    the calibration file's mounting height as a default, the flags as overrides.
+    the calibration file's mounting height and the flags as overrides (``--mount-height`` wins).
 
     Raises:
         ConfigError: a bad ``--scale-sources`` list or ``--mount-height``.
@@ -34,7 +34,9 @@ def scale_flags(args: argparse.Namespace, calibration_mount_height_m: float | No
     profile: dict = {}
     overrides: dict = {}
     if calibration_mount_height_m is not None:
-        profile["mount_height_m"] = float(calibration_mount_height_m)
+        # docs/ground_scale.md: --mount-height, else the calibration file, else the config file;
+        # and the command line is one layer, so ``--scale-sources ground`` sees this height
+        overrides["mount_height_m"] = float(calibration_mount_height_m)
     mount_height = getattr(args, "mount_height", None)
     sources = getattr(args, "scale_sources", None)
     if mount_height is not None:

@@ -19,7 +19,7 @@ import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_URL
 from metricslam_cli.extras import require
-from metricslam_cli.scale_options import add_scale_options, scale_flags
+from metricslam_cli.scale_options import add_scale_options, log_scale_sources, scale_flags
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -101,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url
     config = config_from_args(args)  # before any network: a bad file fails fast
+    import logging
+
+    log_scale_sources(config, logging.getLogger("metricslam.slam_service"))
     settings = load_settings(**overrides)
     from metricslam_slam.service.memory import limit_malloc_arenas
 

@@ -21,6 +21,7 @@ import argparse
 
 from metricslam.endpoints import DEFAULT_DEPTH_HOST, DEFAULT_DEPTH_PORT, DEFAULT_ZENOH_ENDPOINT
 from metricslam_cli.extras import require
+from metricslam_cli.scale_options import add_scale_options, log_scale_sources, scale_flags
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -62,6 +63,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "removed when up stops)")
     p.add_argument("--rerun", metavar="TARGET",
                    help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
+    add_scale_options(p)  # passed on to the SLAM service (docs/ground_scale.md)
     p.set_defaults(func=run)
     return p
 
@@ -69,6 +71,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     require(*(() if args.no_scale else ("depth-service",)), "slam-service", command="up")
 
+    import logging
     import os
     import signal
     import tempfile
@@ -79,8 +82,11 @@ def run(args: argparse.Namespace) -> int:
     from metricslam_slam.supervisor.launcher import Stack
 
     # the SLAM child's system config, checked before anything starts (slam-service loads it so)
-    load_system_config(args.config, profile=LIVE_PROFILE,
-                       overrides={"vo": {"preset": args.preset}} if args.preset else None)
+    _, scale_overrides = scale_flags(args)
+    config = load_system_config(args.config, profile=LIVE_PROFILE,
+                                overrides={**({"vo": {"preset": args.preset}} if args.preset else {}),
+                                           **scale_overrides})
+    log_scale_sources(config, logging.getLogger("metricslam.up"))
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     # without state, a SLAM service the supervisor restarts starts its cameras over at the origin
@@ -91,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
                   log_dir=args.log_dir, restart_delay_s=args.restart_delay, rerun=args.rerun,
                   config_path=args.config, restart_delay_max_s=args.restart_delay_max,
                   hang_timeout_s=args.hang_timeout, probe_period_s=args.probe_period,
-                  state_dir=state_dir or scratch.name)
+                  state_dir=state_dir or scratch.name, scale_sources=args.scale_sources,
+                  mount_height_m=args.mount_height)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stack.request_stop())
 

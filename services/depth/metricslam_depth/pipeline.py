@@ -10,6 +10,11 @@ Contract version 1 resizes each whole image to the network input and uses only `
 as a fraction of the uploaded width for the caller's ``fx``, so ``inv_depth_per_m = d_frac ·
 image_width_px / (fx_px · baseline_m)`` holds for both.
 
+An image with (almost) no texture — blank, black, a lens cap, a uniform wall — still gets the
+network's output, but flagged ``valid: false`` with the reason (``X-Valid`` in the binary form):
+the network answers something plausible-looking for any input, and no depth can be read from
+an image without contrast (:func:`flat_image_reason`).
+
 Everything blocking lives here so the event loop only moves bytes. The response body is
 encoded on the worker too (JSON of 2x32x64 floats is not free), inside the admission slot.
 """
@@ -35,6 +40,25 @@ from .intrinsics import CameraQuery, decoded_camera
 from .metrics import ServiceMetrics
 from .schemas import BatchResponse, DisparityResponse, DisparityResult
 
+#: an image whose gray levels (0-255) have a standard deviation below this is flat: no contrast to
+#: read depth from (sensor noise on a uniform scene is ~1-2 levels; any real view has tens)
+FLAT_STD_LEVELS = 2.0
+
+
+def flat_image_reason(gray: np.ndarray) -> str | None:
+    """Why the decoded ``(H, W)`` uint8 gray image is too flat for a depth map, or None.
+
+    Example::
+
+        >>> flat_image_reason(np.full((8, 8), 128, np.uint8))
+        'flat image: gray-level standard deviation 0.00 < 2 (blank, covered or uniform view)'
+    """
+    std = float(np.std(gray, dtype=np.float64))
+    if std < FLAT_STD_LEVELS:
+        return (f"flat image: gray-level standard deviation {std:.2f} < {FLAT_STD_LEVELS:g} "
+                "(blank, covered or uniform view)")
+    return None
+
 
 @dataclass(frozen=True)
 class Upload:
@@ -56,6 +80,8 @@ class Prediction:
         fx_px / fy_px: the caller's focal lengths (pixels, at the uploaded resolution).
         principal_points_px: (cx, cy) used for each image (pixels of the uploaded image).
         inference_ms: network time (milliseconds) for the whole list.
+        invalid_reasons: per image, None when its map can be used, else why not
+            (:func:`flat_image_reason`).
     """
 
     d_frac: np.ndarray
@@ -65,6 +91,10 @@ class Prediction:
     fy_px: float
     principal_points_px: list[tuple[float, float]]
     inference_ms: float
+    invalid_reasons: tuple[str | None, ...] = ()
+
+    def valid(self, i: int) -> bool:
+        return i >= len(self.invalid_reasons) or self.invalid_reasons[i] is None
 
 
 class DepthPipeline:
@@ -116,7 +146,7 @@ class DepthPipeline:
                 off it (says which one).
         """
         query = CameraQuery(fx_px, fy_px, cx_px, cy_px)
-        images, sizes, points, cameras = [], [], [], []
+        images, sizes, points, cameras, invalid = [], [], [], [], []
         c = self.model.contract
         for index, upload in enumerate(uploads):
             t0 = time.perf_counter()
@@ -136,6 +166,7 @@ class DepthPipeline:
                     exc.detail = f"image {index}: {exc.detail}"
                 raise
             images.append(image)
+            invalid.append(flat_image_reason(image))
             sizes.append(size_px)  # as uploaded (the intrinsics refer to it), not as decoded
             if isinstance(upload.data, bytearray):
                 upload.data.clear()
@@ -155,7 +186,7 @@ class DepthPipeline:
             for i, (width_px, _) in enumerate(sizes):
                 inv[i] = inv_depth_from_width_fraction(d_frac[i], query.fx_px, float(width_px), baseline_m)
         return Prediction(d_frac, inv, sizes, float(query.fx_px), float(query.fy_or_fx), points,
-                          infer_s * 1e3)
+                          infer_s * 1e3, tuple(invalid))
 
     def _from_canonical(self, d_frac: np.ndarray, cameras: list[PinholeCamera], sizes: list[tuple[int, int]],
                         fx_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -181,6 +212,8 @@ class DepthPipeline:
             shape=[int(p.d_frac.shape[1]), int(p.d_frac.shape[2])],
             d_frac=p.d_frac[i].tolist(),
             inv_depth_per_m=p.inv_depth_per_m[i].tolist(),
+            valid=p.valid(i),
+            invalid_reason=None if p.valid(i) else p.invalid_reasons[i],
         )
 
     def render_json(self, p: Prediction, batch: bool) -> bytes:
@@ -217,6 +250,7 @@ class DepthPipeline:
             "X-Image-Width-Px": ",".join(str(w) for w, _ in p.sizes_px),
             "X-Image-Height-Px": ",".join(str(h) for _, h in p.sizes_px),
             "X-Inference-Ms": f"{p.inference_ms:.3f}",
+            "X-Valid": ",".join("1" if p.valid(i) else "0" for i in range(len(p.sizes_px))),
             "X-Array-Layout": ("(B,2,h,w)" if batch else "(2,h,w)") + " [d_frac, inv_depth_per_m]",
         }
         return buffer.getvalue(), headers

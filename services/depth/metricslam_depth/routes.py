@@ -109,6 +109,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     408: _problem_doc("the body did not arrive within body_timeout_s"),
     413: _problem_doc("body, image part, decoded image (pixels or bytes) or batch larger than the "
                       "configured limits"),
+    406: _problem_doc("Accept admits neither application/json nor application/x-npy (e.g. text/html)"),
     415: _problem_doc("Content-Type is not supported by this endpoint"),
     422: _problem_doc("fx missing, not a number, non-finite or out of range; fy, cx or cy not a "
                       "number, non-finite or out of range (cx/cy: off the decoded image)"),
@@ -190,15 +191,53 @@ def _free(data: bytearray) -> None:
         data.clear()
 
 
+#: what an inference answer can be: JSON (the default) or .npy
+ANSWER_MEDIA_TYPES = ("application/json", NPY_MEDIA_TYPE)
+
+
+def _accepted_ranges(request: Request) -> list[str]:
+    """The media ranges of the ``Accept`` header with a non-zero quality (lower case)."""
+    ranges = []
+    for item in request.headers.get("accept", "").lower().split(","):
+        media, *params = (part.strip() for part in item.split(";"))
+        if not media:
+            continue
+        q = next((v for k, _, v in (p.partition("=") for p in params) if k.strip() == "q"), "1")
+        try:
+            if float(q) <= 0:
+                continue
+        except ValueError:
+            pass  # a malformed q counts as accepted, as most servers treat it
+        ranges.append(media)
+    return ranges
+
+
 def _wants_npy(request: Request) -> bool:
-    return NPY_MEDIA_TYPE in request.headers.get("accept", "").lower()
+    """The answer's form from ``Accept``: ``.npy`` when it names application/x-npy, else JSON.
+
+    Raises:
+        RequestProblem: 406 when ``Accept`` admits neither (e.g. ``text/html`` from a browser),
+            before the body is read.
+    """
+    ranges = _accepted_ranges(request)
+    if not request.headers.get("accept", "").strip():
+        return False
+    if NPY_MEDIA_TYPE in ranges:
+        return True
+    if any(r in ("*/*", "application/*", "application/json") for r in ranges):
+        return False
+    raise RequestProblem(
+        406, "not-acceptable", "Response type not available",
+        f"Accept: {request.headers.get('accept')!r} admits none of {', '.join(ANSWER_MEDIA_TYPES)}; "
+        "this is an API, not a web page: send Accept: application/json (or */*, or application/x-npy)",
+    )
 
 
 async def _answer(request: Request, uploads: list[Upload], query: CameraQuery, route: str,
                   batch: bool) -> Response:
     pipeline = _pipeline(request)
     gate = request.app.state.depth.gate
-    binary = _wants_npy(request)
+    binary = _wants_npy(request)  # checked before the body too; cheap to ask again
 
     def work() -> tuple[bytes, dict[str, str]]:
         prediction = pipeline.predict(uploads, query.fx_px, route, query.fy_px, query.cx_px, query.cy_px)
@@ -235,6 +274,7 @@ async def disparity(request: Request, fx: FxQuery, fy: FyQuery = None, cx: CxQue
     route = "/v1/disparity"
     state = request.app.state.depth
     settings = state.settings
+    _wants_npy(request)  # 406 before a byte of the body is read
     media_type = normalise_media_type(request.headers.get("content-type"))
     limit = settings.max_body_bytes
     declared = bodies.declared_length(request, limit, "image")
@@ -269,6 +309,7 @@ async def disparity_batch(request: Request, fx: FxQuery, fy: FyQuery = None, cx:
     route = "/v1/disparity/batch"
     state = request.app.state.depth
     settings = state.settings
+    _wants_npy(request)  # 406 before a byte of the body is read
     content_type = request.headers.get("content-type", "")
     if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
         raise RequestProblem(

@@ -43,6 +43,8 @@ BINARY_HEADERS: dict[str, str] = {
     "X-Image-Width-Px": "width of each uploaded image, comma-separated for a batch",
     "X-Image-Height-Px": "height of each uploaded image, comma-separated for a batch",
     "X-Inference-Ms": "network time for the whole request (milliseconds)",
+    "X-Valid": "1 if the image's map can be used, 0 if not (a flat image: no contrast to read depth "
+               "from; the JSON form says why), comma-separated for a batch",
     "X-Array-Layout": "'(2,h,w) [d_frac, inv_depth_per_m]' or '(B,2,h,w) [d_frac, inv_depth_per_m]'",
 }
 
@@ -84,6 +86,12 @@ class DisparityResult(_Out):
         description="metric inverse depth 1/m = d_frac*image_width_px/(fx_px*baseline_m); "
         "0 where d_frac <= 0; null where d_frac is null"
     )
+    valid: bool = Field(
+        True, description="false when no depth can be read from the image (flat: blank, covered, "
+        "uniform; see invalid_reason): the arrays are the network's output all the same, but "
+        "they are NOT a measurement — do not use them"
+    )
+    invalid_reason: str | None = Field(None, description="why valid is false; null when valid")
 
 
 class DisparityResponse(DisparityResult):

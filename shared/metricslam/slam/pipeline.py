@@ -60,6 +60,8 @@ class SlamPipeline:
                  initial_scale: InitialScaleConfig | None = None) -> None:
         self.camera = camera
         self.backend = backend
+        #: the scale sources in use and the mounting height (``build_session`` sets it; stats)
+        self.scale_info: dict | None = None
         self.vo = LocalVO(vo_config or VOConfig(), camera, consumer=self)
         self._lock = threading.Lock()
         self._estimates: list[PoseEstimate] = []
@@ -174,6 +176,8 @@ class SlamPipeline:
                "first_metric_frame": self._first_metric_frame,
                "initial_scale": None if self._initial is None else self._initial.as_dict(),
                "ms_per_frame": per_frame, "ms_per_call": per_call}
+        if self.scale_info is not None:
+            out["scale"] = dict(self.scale_info)
         if self.backend is not None and hasattr(self.backend, "stats"):
             try:
                 out["backend"] = self.backend.stats()

@@ -64,8 +64,11 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
         if source is not None:
             history.attach(backend.events)
     log.debug("built a %s session: VO %s", config.mode, vo_config.model_dump())
-    return SlamPipeline(camera, vo_config, backend=backend, scale_history=history,
-                        initial_scale=config.initial_scale if config.use_scale else None)
+    pipeline = SlamPipeline(camera, vo_config, backend=backend, scale_history=history,
+                            initial_scale=config.initial_scale if config.use_scale else None)
+    pipeline.scale_info = {"sources": [s for s, on in (("learned", config.use_scale), ("ground", config.use_ground))
+                                       if on], "mount_height_m": config.scale.mount_height_m}
+    return pipeline
 
 
 def preset_for(seq_dir: str | Path) -> str:

@@ -31,6 +31,7 @@ from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError
 from metricslam.slam.types import ScaleState, TrackingState
 from metricslam.wire.keys import check_camera_id
+from metricslam.wire.scale_status import ScaleHealthStatus
 
 SCHEMA_VERSION = 1
 MAGIC = b"MSLM"
@@ -235,6 +236,7 @@ class StatusMessage(Message):
     ``latency_ms_*``: frame receipt -> pose publish inside the service, over a recent window.
     ``event`` / ``event_detail``: set on one-off statuses about the camera's session
     (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state").
+    ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
     """
 
     KIND: ClassVar[str] = "status"
@@ -259,6 +261,7 @@ class StatusMessage(Message):
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
     event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over"] | None = None
     event_detail: str | None = Field(default=None, max_length=1000)
+    scale_health: ScaleHealthStatus | None = None
 
 
 class TrajectoryMessage(Message):

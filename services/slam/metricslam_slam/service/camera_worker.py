@@ -31,6 +31,7 @@ from metricslam.wire.codec import FrameMessage, KeyframeMessage, Message, PoseMe
 from metricslam_slam.service.continued_session import ContinuedSession, why_new_session
 from metricslam_slam.service.memory import release_memory
 from metricslam_slam.service.odometry_stream import OdometryStream
+from metricslam_slam.service.scale_health import scale_health_status
 
 log = logging.getLogger(__name__)
 Publish = Callable[[str, Message], None]  # (topic, message)
@@ -88,6 +89,7 @@ class CameraWorker:
         self._queue: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=queue_size)
         self._cond = threading.Condition()
         self._stop = False
+        self._busy_since_s: float | None = None  # monotonic start of the frame being handled (watchdog)
         self._session: SlamSession | None = None
         self._session_lock = threading.Lock()
         self._camera: PinholeCamera | None = None
@@ -135,10 +137,24 @@ class CameraWorker:
                 if self._stop and not self._queue:
                     return
                 t_in_ns, payload = self._queue.popleft()
+            self._busy_since_s = time.monotonic()
             try:
                 self._handle(t_in_ns, payload)
             except Exception:  # a bad frame or a session bug must never end the loop
                 log.exception("camera %s: frame handling failed", self.camera_id)
+            finally:
+                self._busy_since_s = None
+
+    @property
+    def camera(self) -> PinholeCamera | None:
+        """The intrinsics of the camera's frames (None before its first valid frame)."""
+        return self._camera
+
+    def stalled_s(self, now_s: float) -> float:
+        """Seconds (monotonic) the worker has been on its current frame; 0 while waiting for one
+        (the service's watchdog, :mod:`metricslam_slam.service.watchdog`)."""
+        since = self._busy_since_s
+        return 0.0 if since is None else now_s - since
 
     def _reject(self, why: str) -> None:
         self.malformed += 1
@@ -305,9 +321,11 @@ class CameraWorker:
         times = list(self._done_times)
         fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
         stats: dict = {}
+        scale_health = None
         if self._session is not None:
             try:
-                stats = _flatten(self._session.stats())
+                raw = self._session.stats()
+                stats, scale_health = _flatten(raw), scale_health_status(raw)
             except Exception:  # stats are best effort
                 log.exception("camera %s: session.stats failed", self.camera_id)
         return StatusMessage(
@@ -319,7 +337,7 @@ class CameraWorker:
             tracking_state=self.last_state, scale_established=self.scale_established,
             keyframes=self.keyframes, depth_url=depth_url, depth_reachable=depth_reachable,
             depth_error=depth_error, depth_outages=depth_outages, scale_state=self.scale_state,
-            session_stats=stats)
+            session_stats=stats, scale_health=scale_health)
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Finish the queued frames, stop the thread, close and free the session (its final

@@ -12,6 +12,14 @@ out (CDR, reliable, volatile, keep-last 10)::
                                                           (native ``…/pose``; jumps when a correction lands)
     /metricslam/<cam>/path       nav_msgs/Path            the optimized trajectory, on change
     /metricslam/<cam>/landmarks  sensor_msgs/PointCloud2  the local window's landmarks, per keyframe
+    /metricslam/<cam>/keyframe/depth/image        sensor_msgs/Image 32FC1: a keyframe's coarse
+                                                  metric depth (m; NaN unknown), per depth answer
+    /metricslam/<cam>/keyframe/depth/camera_info  sensor_msgs/CameraInfo of that depth image, AT
+                                                  ITS OWN (coarse) resolution: the camera's K
+                                                  scaled to the grid (image_transport's pairing)
+    /tf                          tf2_msgs/TFMessage       ``<cam>/world`` -> ``<cam>/camera_optical``
+                                                          with every ``…/pose``, as the MCAP
+                                                          recordings carry it (keep-last 100)
 
 in::
 
@@ -45,22 +53,25 @@ import numpy as np
 import zenoh
 
 from metricslam.camera import PinholeCamera
-from metricslam.errors import CodecError
+from metricslam.errors import CodecError, ConfigError
 from metricslam.ros2 import messages
 from metricslam.ros2.rmw_zenoh import (
     PUBLISHER, SUBSCRIPTION, Node, Qos, attachment, frame_ids, gid, ros_token, topic_key,
 )
 from metricslam.ros2.typestore import (
-    CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, dds_type_name, deserialize, serialize,
+    CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, TF_MESSAGE, dds_type_name, deserialize,
+    serialize, typestore,
 )
 from metricslam.slam.types import ScaleState, TrackingState
 from metricslam.wire import keys
 from metricslam.wire.codec import FrameMessage, Message, PoseMessage, StatusMessage, TrajectoryMessage, encode
-from metricslam.wire.map_messages import LandmarksMessage
+from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
 from metricslam.wire.odometry_message import OdometryMessage
 
 log = logging.getLogger(__name__)
 QOS = Qos()  # reliable, volatile, keep-last 10: "::,10:,:,:,,"
+TF_QOS = Qos(depth=100)  # tf2_ros's listener QoS (reliable, volatile, keep-last 100)
+TF_TOPIC = "/tf"
 #: variance (m², rad², (m/s)², …) meaning "no information": a fusing filter gives it no weight
 UNKNOWN_VARIANCE = 1e6
 #: position variance (m²) of a ``provisional`` pose: metric-ish, from few scale measurements
@@ -97,14 +108,28 @@ def scale_state_from_covariance(pose_covariance: np.ndarray) -> ScaleState:
     return ScaleState.PROVISIONAL if var_p >= PROVISIONAL_VARIANCE / 2 else ScaleState.METRIC
 
 
+def depth_camera(camera: PinholeCamera | None, msg: KeyframeDepthMessage) -> PinholeCamera | None:
+    """The intrinsics of a keyframe's coarse depth grid (h, w): ``camera`` (the keyframe image's,
+    brought to ``image_width_px`` x ``image_height_px`` if it differs) resized to the grid, which
+    covers the whole image (pixel centres map to pixel centres,
+    :meth:`~metricslam.camera.PinholeCamera.resized`). None when the camera is unknown."""
+    if camera is None:
+        return None
+    if (camera.width_px, camera.height_px) != (msg.image_width_px, msg.image_height_px):
+        camera = camera.resized(msg.image_width_px, msg.image_height_px)
+    h, w = msg.inv_depth_per_m.shape
+    return camera.resized(w, h)
+
+
 class RosPublisher:
     """One ROS 2 publisher: a Zenoh publisher on the topic's key, its ``MP`` liveliness token,
     its GID, and the sequence number each sample's attachment carries (from 1)."""
 
-    def __init__(self, session: zenoh.Session, node: Node, entity_id: int, topic: str, msgtype: str) -> None:
+    def __init__(self, session: zenoh.Session, node: Node, entity_id: int, topic: str, msgtype: str,
+                 qos: Qos = QOS) -> None:
         self.topic, self.msgtype = topic, msgtype
         self.key = topic_key(node.domain_id, topic, msgtype)
-        self.token_key = node.endpoint_token(entity_id, PUBLISHER, topic, msgtype, QOS)
+        self.token_key = node.endpoint_token(entity_id, PUBLISHER, topic, msgtype, qos)
         self.gid = gid(self.token_key)
         self._lock = threading.Lock()
         self._sequence = 0
@@ -144,13 +169,22 @@ class Ros2Bridge:
         publish_native: ``(camera_id, topic, message)`` -> ``metricslam/<camera_id>/<topic>``
             (for the ``…/status`` note while images are refused).
         serves: whether this service instance handles a camera (its ``frame_key_expr``).
+        camera_of: the intrinsics a camera's frames carry (None until known): the keyframe depth's
+            CameraInfo is derived from them.
+
+    Raises:
+        ConfigError: the ``ros`` extra (rosbags) is not installed (:meth:`check_available`).
     """
 
     def __init__(self, session: zenoh.Session, domain_id: int, node_name: str,
                  offer_frame: Callable[[str, bytes], None],
                  publish_native: Callable[[str, str, Message], None],
                  serves: Callable[[str], bool] = lambda camera_id: True,
-                 position_sigma_m: float = 0.5, rotation_sigma_rad: float = 0.02) -> None:
+                 position_sigma_m: float = 0.5, rotation_sigma_rad: float = 0.02,
+                 camera_of: Callable[[str], PinholeCamera | None] = lambda camera_id: None) -> None:
+        self.check_available()
+        self._camera_of = camera_of
+        self._tf: RosPublisher | None = None
         self.node = Node(domain_id=domain_id, zid=str(session.info.zid()), node_id=0, name=node_name)
         self._session = session
         self._offer_frame, self._publish_native, self._serves = offer_frame, publish_native, serves
@@ -166,6 +200,15 @@ class Ros2Bridge:
             session.declare_subscriber(self._input_key("camera_info", CAMERA_INFO), self._on_camera_info),
         ]
         log.info("ROS 2 bridge: node /%s on domain %d (zenoh session %s)", node_name, domain_id, self.node.zid)
+
+    @staticmethod
+    def check_available() -> None:
+        """Raise :class:`ConfigError` now, naming the fix, when ROS 2 messages cannot be built
+        (no ``rosbags``): otherwise ``SLAM_ROS2=1`` would fail on every publish, later."""
+        try:
+            typestore()
+        except ConfigError as exc:
+            raise ConfigError(f"SLAM_ROS2=1 / --ros2: {exc} (the slam image installs it)") from None
 
     def _input_key(self, leaf: str, msgtype: str) -> str:
         # any camera, any version (type hash) of the type
@@ -188,14 +231,32 @@ class Ros2Bridge:
                 out = self._camera_outputs(camera_id)
                 out["landmarks"].put(messages.point_cloud2(message.points_world, message.t_ns,
                                                            frame_ids(camera_id)[0]))
+            elif isinstance(message, KeyframeDepthMessage):
+                self._forward_keyframe_depth(camera_id, message)
         except Exception:  # noqa: BLE001 -- the ROS face must never disturb the native one
             log.exception("ROS 2 publish of %s/%s failed", camera_id, topic)
 
     def _forward_pose(self, camera_id: str, msg: PoseMessage) -> None:
         if msg.state != TrackingState.TRACKING:
             return  # initializing / lost / invalid frames carry no pose of their own
-        world, _ = frame_ids(camera_id)
+        world, cam = frame_ids(camera_id)
         self._camera_outputs(camera_id)["pose"].put(messages.pose_stamped(msg.T_world_cam, msg.t_ns, world))
+        self._tf_publisher().put(messages.tf_message(msg.T_world_cam, msg.t_ns, world, cam))
+
+    def _forward_keyframe_depth(self, camera_id: str, msg: KeyframeDepthMessage) -> None:
+        _, cam = frame_ids(camera_id)
+        out = self._camera_outputs(camera_id)
+        out["depth"].put(messages.image(msg.depth_m(), msg.t_ns, cam))
+        info = depth_camera(self._camera_of(camera_id), msg)
+        if info is not None:
+            out["depth_info"].put(messages.camera_info(info, msg.t_ns, cam))
+
+    def _tf_publisher(self) -> RosPublisher:
+        with self._lock:
+            if self._tf is None:
+                self._tf = RosPublisher(self._session, self.node, next(self._entity_ids), TF_TOPIC,
+                                        TF_MESSAGE, TF_QOS)
+            return self._tf
 
     def _forward_odometry(self, camera_id: str, msg: OdometryMessage) -> None:
         if msg.state != TrackingState.TRACKING:
@@ -213,6 +274,11 @@ class Ros2Bridge:
                     leaf: RosPublisher(self._session, self.node, next(self._entity_ids), f"{base}/{leaf}", msgtype)
                     for leaf, msgtype in (("odom", ODOMETRY), ("pose", POSE_STAMPED), ("path", PATH),
                                           ("landmarks", POINT_CLOUD2))}
+                depth = {"depth": ("keyframe/depth/image", IMAGE),
+                         "depth_info": ("keyframe/depth/camera_info", CAMERA_INFO)}
+                self._outputs[camera_id].update({
+                    name: RosPublisher(self._session, self.node, next(self._entity_ids), f"{base}/{leaf}", msgtype)
+                    for name, (leaf, msgtype) in depth.items()})
             return self._outputs[camera_id]
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -312,7 +378,8 @@ class Ros2Bridge:
         self.close_inputs()
         with self._lock:
             outputs = [p for pubs in self._outputs.values() for p in pubs.values()]
-            tokens, self._tokens, self._outputs = self._tokens, [], {}
+            outputs += [self._tf] if self._tf is not None else []
+            tokens, self._tokens, self._outputs, self._tf = self._tokens, [], {}, None
         for pub in outputs:
             pub.close()
         for token in tokens:

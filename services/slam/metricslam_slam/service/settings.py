@@ -74,6 +74,14 @@ class SlamServiceSettings(BaseSettings):
         state_dir: where each camera's trajectory is persisted (``<camera_id>.poses.jsonl``); a
             restarted service continues a known camera from its last pose
             (``session_restarted``). None: nothing survives a restart.
+        hang_timeout_s: the service's own watchdog ends the process (exit 70) when a camera has
+            been stuck on one frame, or the status loop has not ticked, for this long, so that
+            compose (``restart: unless-stopped``) or Kubernetes restarts it
+            (:mod:`metricslam_slam.service.watchdog`); 0: never (the heartbeat file, if set, is
+            still written).
+        heartbeat_file: the watchdog rewrites this file after each check that found nothing hung;
+            the Kubernetes liveness probe (``python -m metricslam_slam.supervisor.healthcheck
+            --alive``) fails when it is stale. None: no file.
     """
 
     model_config = SettingsConfigDict(env_prefix="SLAM_", frozen=True, extra="forbid")
@@ -103,6 +111,8 @@ class SlamServiceSettings(BaseSettings):
     malloc_arenas: int = Field(default=2, ge=0)
     heap_trim_period_s: float = Field(default=10.0, ge=0)
     state_dir: Path | None = None
+    hang_timeout_s: float = Field(default=120.0, ge=0)
+    heartbeat_file: Path | None = None
 
 
 def load_settings(**overrides: object) -> SlamServiceSettings:

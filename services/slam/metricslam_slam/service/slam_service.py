@@ -10,6 +10,8 @@ drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every proce
 ``instance`` and ``started_t_ns`` change when the service restarts, which is how ``replay`` and
 ``poses`` tell a restart from a slow service) and ``metricslam/_service/reset/<camera_id>`` (the
 camera's next frame starts a fresh session; the query's payload, if any, is the reason given).
+A :class:`~metricslam_slam.service.watchdog.Watchdog` ends the process when a camera or the
+status loop hangs (``hang_timeout_s``), so that compose or Kubernetes restarts it.
 Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
 """
 
@@ -94,6 +96,8 @@ class SlamService:
         self._session: zenoh.Session | None = None
         self._entities: list = []
         self._status_thread: threading.Thread | None = None
+        self._status_tick_s = time.monotonic()  # the status loop's last turn (watchdog)
+        self._watchdog = None
         self.unrouted = 0
         self.instance = uuid.uuid4().hex[:12]  # tells this run of the service from the next one
         self.started_t_ns = time.time_ns()
@@ -107,6 +111,9 @@ class SlamService:
                  else "no credentials (ZENOH_ACCESS_USER unset)")
         log.info("SLAM system config (%s): %s", self.config.mode, self.config.model_dump(mode="json"))
         self._check_depth_link()
+        if self.settings.ros2:  # fail at start, naming the fix, not on every publish later
+            from metricslam_slam.service.ros2_bridge import Ros2Bridge
+            Ros2Bridge.check_available()
         deadline = time.monotonic() + connect_timeout_s
         while True:  # the router may come up after us (compose, `up`)
             try:
@@ -132,9 +139,15 @@ class SlamService:
             from metricslam_slam.service.ros2_bridge import Ros2Bridge
             st = self.settings
             self.ros2 = Ros2Bridge(s, st.ros2_domain_id, st.ros2_node_name, self._offer_frame, self._put,
-                                   self._serves, st.ros2_position_sigma_m, st.ros2_rotation_sigma_rad)
+                                   self._serves, st.ros2_position_sigma_m, st.ros2_rotation_sigma_rad,
+                                   camera_of=lambda cid: getattr(self._cameras.get(cid), "camera", None))
         self._status_thread = threading.Thread(target=self._status_loop, name="slam-status", daemon=True)
+        self._status_tick_s = time.monotonic()
         self._status_thread.start()
+        if self.settings.hang_timeout_s > 0 or self.settings.heartbeat_file is not None:
+            from metricslam_slam.service.watchdog import Watchdog
+            self._watchdog = Watchdog(self.settings.hang_timeout_s or float("inf"), self.stalls,
+                                      self.settings.heartbeat_file).start()
         log.info("SLAM service connected to %s; listening on %s", self.settings.zenoh_endpoint,
                  self.settings.frame_key_expr)
         return self
@@ -145,6 +158,8 @@ class SlamService:
             return
         self._stopped.set()
         self._stop_requested.set()
+        if self._watchdog is not None:  # closing cameras may take long; that is not a hang
+            self._watchdog.stop()
         for entity in self._entities[:1]:
             entity.undeclare()
         if self.ros2 is not None:
@@ -338,10 +353,19 @@ class SlamService:
             log.info("learned scale factors from the depth service at %s", self.settings.depth_url)
 
     # -- status ------------------------------------------------------------------------------
+    def stalls(self) -> list[tuple[str, float]]:
+        """``(what, seconds without progress)`` of each loop the watchdog watches: the status
+        loop (it ticks every ``status_period_s``) and each camera's worker on its frame."""
+        now = time.monotonic()
+        status_s = now - self._status_tick_s - self.settings.status_period_s
+        return [("the status loop", max(0.0, status_s))] + [
+            (f"camera {w.camera_id}", w.stalled_s(now)) for w in self._cameras.workers()]
+
     def _status_loop(self) -> None:
         period = self.settings.heap_trim_period_s
         trimmed_s = time.monotonic()
         while not self._stopped.wait(self.settings.status_period_s):
+            self._status_tick_s = time.monotonic()
             probe = getattr(self.depth_source, "probe", None)
             if callable(probe):
                 probe()

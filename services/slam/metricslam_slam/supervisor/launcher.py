@@ -252,6 +252,8 @@ class Stack:
             restarted (0: no liveness probes, only exits are noticed). A restarted child has
             ``max(hang_timeout_s, ready_timeout_s)`` to answer for the first time.
         probe_period_s: time between probe rounds (each probe waits at most this, capped at 2 s).
+        scale_sources / mount_height_m: the SLAM service's ``--scale-sources`` (comma-separated)
+            and ``--mount-height`` (m); None: its config's (docs/ground_scale.md).
     """
 
     def __init__(self, zenoh_endpoint: str, depth_port: int | None = DEFAULT_DEPTH_PORT,
@@ -261,7 +263,8 @@ class Stack:
                  ready_timeout_s: float = 60.0, rerun: str | None = None,
                  config_path: str | None = None, restart_delay_max_s: float = 30.0,
                  stable_after_s: float = 30.0, hang_timeout_s: float = 20.0,
-                 probe_period_s: float = 2.0, state_dir: str | None = None) -> None:
+                 probe_period_s: float = 2.0, state_dir: str | None = None,
+                 scale_sources: str | None = None, mount_height_m: float | None = None) -> None:
         check_endpoint(zenoh_endpoint)
         if hang_timeout_s < 0 or probe_period_s <= 0:
             raise ServiceError(f"--hang-timeout must be >= 0 and --probe-period > 0 s, got "
@@ -310,6 +313,10 @@ class Stack:
             slam += ["--config", str(config_path)]
         if state_dir:
             slam += ["--state-dir", str(state_dir)]
+        if scale_sources:
+            slam += ["--scale-sources", str(scale_sources)]
+        if mount_height_m is not None:
+            slam += ["--mount-height", repr(float(mount_height_m))]
         self.children.append(Child("slam-service", slam, lambda: slam_ready(zenoh_endpoint),
                                    f"{zenoh_endpoint} (metricslam/<camera_id>/{{frame,pose,keyframe,status,trajectory}})"
                                    + (f"; state in {state_dir}" if state_dir else ""),

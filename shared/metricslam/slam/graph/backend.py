@@ -61,14 +61,16 @@ class GlobalBackend:
         #: what the back end did (:mod:`metricslam.slam.events`): subscribe here to observe it
         self.events = EventBus()
         ground_k = ground_meter.config.ground_huber_k if ground_meter is not None else None
-        #: learned vs ground scale per keyframe and the disagreement warning (with a ground meter)
+        #: learned and ground scale per keyframe, their spread and disagreement warning (an
+        #: observer of the events: with either source, so learned-only runs report the spread)
         self.scale_health = None
-        if ground_meter is not None:
+        if ground_meter is not None or depth_source is not None:
             from metricslam.slam.ground.health import ScaleHealth
 
-            self.scale_health = ScaleHealth(ground_meter.config.health, self.config.scale_sigma_log,
-                                            self.config.scale_huber_k)
+            self.scale_health = ScaleHealth(ground_meter.config.health if ground_meter is not None else None,
+                                            self.config.scale_sigma_log, self.config.scale_huber_k)
             self.scale_health.attach(self.events)
+        self._scale_sigma_log: float | None = None  # the newest solved keyframe's, last read
         self.estimator = GlobalEstimator(self.config, depth_source is not None, loop_detector, self.events,
                                          ground_huber_k=ground_k)
         self._lock = threading.RLock()  # one estimator call at a time
@@ -230,12 +232,27 @@ class GlobalBackend:
             "scale_established": self.scale_established,
             **(est.loop_detector.store_counters if est.loop_detector is not None else {}),
             **(self._ground_stats() if self.ground_meter is not None else {}),
+            **({"scale_health": self.scale_health.snapshot(), "scale_sigma_log": self.scale_sigma_log()}
+               if self.scale_health is not None else {}),
         }
 
     def _ground_stats(self) -> dict:
         meter = self.ground_meter
-        return {"ground_factors": self.estimator.graph.n_ground_factors, **meter.counts,
-                "ground_rejected_reasons": dict(meter.reasons), "scale_health": self.scale_health.snapshot()}
+        return {"ground_factors": self.estimator.n_ground_factors, **meter.counts,
+                "ground_rejected_reasons": dict(meter.reasons)}
+
+    def scale_sigma_log(self) -> float | None:
+        """σ of the newest solved keyframe's log-scale (ISAM2's marginal); while a solve runs, the
+        last value read (a status publisher must not wait on a solve)."""
+        if not self._lock.acquire(blocking=False):
+            return self._scale_sigma_log
+        try:
+            newest = self.estimator.newest_kf_id
+            if newest is not None:
+                self._scale_sigma_log = self.estimator.graph.scale_sigma_log(newest)
+        finally:
+            self._lock.release()
+        return self._scale_sigma_log
 
     # -- work ---------------------------------------------------------------------------------
     def _take_solved(self) -> None:
@@ -251,13 +268,19 @@ class GlobalBackend:
         if self.ground_meter is None:
             return
         try:
-            ev = self.ground_meter.measure(kf)
+            ev = self.ground_meter.measure(kf, self._graph_scale)
         except MetricSlamError as exc:
             log.warning("no ground scale for keyframe %d: %s", kf.kf_id, exc)
             return
         if ev.accepted:
             self.estimator.add_ground_result(ev.kf_id, ev.scale, ev.sigma_log)
         self.events.emit(ev)
+
+    def _graph_scale(self, kf_id: int) -> float | None:
+        """Scale of keyframe ``kf_id``'s ``S_world_kf`` now (m per its VO unit; caller holds
+        ``_lock``), None when the graph does not know it."""
+        graph = self.estimator.graph
+        return sim3.scale(graph.estimate(kf_id)) if graph.has(kf_id) else None
 
     def _measure_scale(self, kf: MarginalizedKeyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Depth request -> (per-landmark scale measurements, the metric inverse-depth map

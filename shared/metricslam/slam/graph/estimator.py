@@ -26,6 +26,7 @@ import numpy as np
 from metricslam.errors import GraphError, MetricSlamError
 from metricslam.geometry import sim3
 from metricslam.slam.events import EventBus, LoopAccepted, Solved
+from metricslam.slam.graph import ground_factor
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import (
     VoFrameHistory,
@@ -86,6 +87,7 @@ class GlobalEstimator:
         self._pending_scales: dict[int, np.ndarray] = {}
         self._pending_ground: dict[int, tuple[float, float]] = {}  # kf_id -> (scale, sigma_log)
         self.ground_factors_solved = 0
+        self.n_ground_factors = 0  # road-plane scale factors added to the graph
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
@@ -139,6 +141,11 @@ class GlobalEstimator:
         if self.loop_detector is not None:
             self._depth_done[int(kf_id)] = inv_map
 
+    @property
+    def newest_kf_id(self) -> int | None:
+        """The newest keyframe in the graph (None: none yet)."""
+        return self._newest_kf
+
     def add_ground_result(self, kf_id: int, scale: float, sigma_log: float) -> None:
         """A keyframe's accepted road-plane scale ``h_mount_m / h_vo`` (m per keyframe unit)."""
         self._pending_ground[int(kf_id)] = (float(scale), float(sigma_log))
@@ -170,7 +177,7 @@ class GlobalEstimator:
         """One incremental solve; verified loops are gated against it, added, and solved again."""
         t0 = time.perf_counter()
         n_before = self.graph.n_scale_factors
-        n_ground_before = self.graph.n_ground_factors
+        n_ground_before = self.n_ground_factors
         try:
             res = self.graph.solve()
             if self._pending_loops:  # gate against the solved graph, then solve with the loops
@@ -222,7 +229,8 @@ class GlobalEstimator:
             self.graph.add_scale_measurements(kf_id, self._pending_scales.pop(kf_id))
         for kf_id in [k for k in self._pending_ground if self.graph.has(k)]:
             scale, sigma_log = self._pending_ground.pop(kf_id)
-            self.graph.add_ground_scale(kf_id, scale, sigma_log, self.ground_huber_k)
+            ground_factor.add_ground_scale(self.graph, kf_id, scale, sigma_log, self.ground_huber_k)
+            self.n_ground_factors += 1
 
     def _run_loop_queries(self, final: bool) -> None:
         """Query loops for waiting keyframes, in order, once each has its depth map (scale mode;

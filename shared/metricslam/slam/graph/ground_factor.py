@@ -37,3 +37,14 @@ def make_ground_scale_factor(key: int, S_current: gtsam.Similarity3, scale: floa
                          f"{scale!r}, {sigma_log!r}")
     return gtsam.PriorFactorSimilarity3(key, with_scale(S_current, float(scale)),
                                         ground_noise(sigma_log, huber_k))
+
+
+def add_ground_scale(graph: object, kf_id: int, scale: float, sigma_log: float, huber_k: float) -> None:
+    """Add keyframe ``kf_id``'s road-plane scale ``h_mount_m / h_vo`` (m per keyframe unit) to a
+    :class:`~.sim3_graph.GlobalPoseGraph` as one robust log-scale factor.
+
+    Raises:
+        GraphError: unknown keyframe, or a scale or sigma that is not positive and finite.
+    """
+    graph.add_unary(kf_id, lambda k, S_current: make_ground_scale_factor(k, S_current, scale, sigma_log,
+                                                                         huber_k), "ground")

@@ -1,4 +1,5 @@
-"""Plain records the global back end keeps: per-keyframe bookkeeping and accepted loops."""
+"""Plain records the global back end keeps: per-keyframe bookkeeping, accepted loops and loop
+decisions."""
 
 from __future__ import annotations
 
@@ -28,3 +29,14 @@ class LoopRecord:
     frame_old: int
     frame_new: int
     n_inliers: int
+
+
+@dataclass(frozen=True)
+class LoopDecision:
+    """Outcome of :meth:`~.sim3_graph.GlobalPoseGraph.add_loop`."""
+
+    accepted: bool
+    kf_old: int
+    kf_new: int
+    mahalanobis_sq: float
+    reason: str

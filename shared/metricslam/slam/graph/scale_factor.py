@@ -147,3 +147,12 @@ def make_scale_factors(
 def log_scale_residual(S_prior: gtsam.Similarity3, S: gtsam.Similarity3) -> float:
     """The λ component of ``Log(S_prior⁻¹ S)`` (= ``log(s / s_prior)``)."""
     return float(gtsam.Similarity3.Logmap(S_prior.inverse().compose(S))[6])
+
+
+def marginal_sigma_log(isam: gtsam.ISAM2, key: int) -> float | None:
+    """σ of ``log s`` of the Similarity3 variable ``key`` from ISAM2's marginal covariance
+    (tangent ``[ω, u, λ]``: λ = log s is the last); None when the marginal fails."""
+    try:
+        return float(np.sqrt(max(isam.marginalCovariance(key)[6, 6], 0.0)))
+    except (RuntimeError, IndexError):  # indeterminate: no answer rather than a wrong one
+        return None

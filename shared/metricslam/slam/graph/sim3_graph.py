@@ -14,15 +14,16 @@ Not thread-safe: :class:`metricslam.slam.graph.backend.GlobalBackend` serializes
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from typing import Callable
 
 import gtsam
 import numpy as np
 
 from metricslam.errors import GraphError
-from metricslam.slam.graph import batch_solve, ground_factor, scale_factor
+from metricslam.slam.graph import batch_solve, scale_factor
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, key, to_gtsam
+from metricslam.slam.graph.records import LoopDecision
 
 log = logging.getLogger(__name__)
 
@@ -31,17 +32,6 @@ LOOP_GATE_CHI2 = 200.0
 #: sigma of the gauge prior on the first keyframe: firm, but not so firm that Cholesky on
 #: 1e12-vs-1e2 information becomes indeterminate.
 ANCHOR_SIGMA = 1e-3
-
-
-@dataclass(frozen=True)
-class LoopDecision:
-    """Outcome of :meth:`GlobalPoseGraph.add_loop`."""
-
-    accepted: bool
-    kf_old: int
-    kf_new: int
-    mahalanobis_sq: float
-    reason: str
 
 
 class GlobalPoseGraph:
@@ -74,7 +64,6 @@ class GlobalPoseGraph:
         self._latest: dict[int, gtsam.Similarity3] = {}  # best known estimate per keyframe
         self._scale_noise = scale_factor.scale_noise(self.config)
         self.n_scale_factors = 0
-        self.n_ground_factors = 0
         self.n_loops_accepted = 0
         self.n_loops_rejected = 0
         self.n_rebuilds = 0
@@ -150,14 +139,11 @@ class GlobalPoseGraph:
         self.n_scale_factors += int(s.size)
         return int(s.size)
 
-    def add_ground_scale(self, kf_id: int, scale: float, sigma_log: float, huber_k: float) -> None:
-        """Add keyframe ``kf_id``'s road-plane scale ``h_mount_m / h_vo`` (m per keyframe unit) as
-        one robust log-scale factor (:mod:`.ground_factor`)."""
+    def add_unary(self, kf_id: int, make: Callable[[int, gtsam.Similarity3], gtsam.NonlinearFactor], kind: str) -> None:
+        """Add keyframe ``kf_id``'s factor ``make(key, S_world_kf now)`` labelled ``kind`` (:mod:`.ground_factor`)."""
         if not self.has(kf_id):
-            raise GraphError(f"ground scale for unknown keyframe {kf_id}; add the keyframe first")
-        self._add(ground_factor.make_ground_scale_factor(key(kf_id), self._latest[int(kf_id)], scale,
-                                                         sigma_log, huber_k), "ground")
-        self.n_ground_factors += 1
+            raise GraphError(f"{kind} factor for unknown keyframe {kf_id}; add the keyframe first")
+        self._add(make(key(kf_id), self._latest[int(kf_id)]), kind)
 
     def add_loop(self, kf_old: int, kf_new: int, S_old_new: np.ndarray, sigmas: np.ndarray,
                  gate: bool = True) -> LoopDecision:
@@ -370,6 +356,11 @@ class GlobalPoseGraph:
         if self._corrupt_at is None and self._isam.valueExists(key(kf_id)):
             return from_gtsam(self._isam.calculateEstimateSimilarity3(key(kf_id)))
         return from_gtsam(self._latest[int(kf_id)])
+
+    def scale_sigma_log(self, kf_id: int) -> float | None:
+        """σ of keyframe ``kf_id``'s ``log s`` from ISAM2's marginal (None: not solved yet)."""
+        usable = self._corrupt_at is None and self._isam.valueExists(key(int(kf_id)))
+        return scale_factor.marginal_sigma_log(self._isam, key(int(kf_id))) if usable else None
 
     def estimates(self) -> dict[int, np.ndarray]:
         """``kf_id -> S_world_kf`` (4, 4) for every keyframe (full back-substitution, O(n))."""

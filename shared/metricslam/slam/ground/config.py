@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from metricslam.errors import ConfigError
+from metricslam.slam.ground.consistency import HeightConsistencyConfig
 from metricslam.slam.ground.height import GroundHeightConfig
 
 ScaleSource = Literal["learned", "ground"]
@@ -80,6 +81,7 @@ class ScaleConfig(BaseModel):
         ground_sigma_log: sigma of one keyframe's ground log-scale factor. Larger than the
             estimator's own σ: it is correlated along the road (car pitch, road camber).
         ground_huber_k: Huber threshold on the whitened ground residual.
+        consistency: the gate against the recent accepted heights (:class:`HeightConsistencyConfig`).
         health: the disagreement warning (:class:`ScaleHealthConfig`).
     """
 
@@ -90,6 +92,7 @@ class ScaleConfig(BaseModel):
     ground: GroundHeightConfig = GroundHeightConfig()
     ground_sigma_log: float = Field(default=0.05, gt=0)
     ground_huber_k: float = Field(default=1.345, gt=0)
+    consistency: HeightConsistencyConfig = HeightConsistencyConfig()
     health: ScaleHealthConfig = ScaleHealthConfig()
 
     @field_validator("sources", mode="before")

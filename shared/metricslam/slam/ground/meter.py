@@ -16,6 +16,7 @@ import numpy as np
 
 from metricslam.slam.events import GroundScaleMeasured
 from metricslam.slam.ground.config import ScaleConfig
+from metricslam.slam.ground.consistency import HeightConsistency, ScaleOf
 from metricslam.slam.ground.height import RoadHeightEstimator
 from metricslam.slam.types import MarginalizedKeyframe
 
@@ -33,14 +34,17 @@ class GroundScaleMeter:
         self.config = config
         self.h_mount_m = float(config.mount_height_m)
         self._estimator = RoadHeightEstimator(config.ground)
+        self._consistency = HeightConsistency(config.consistency)
         self._prev: dict[int, tuple[int, np.ndarray]] = {}  # segment -> (frame_index, image)
         #: measurements made and accepted, and why the others were not (run statistics)
         self.counts: dict[str, int] = {"ground_measured": 0, "ground_accepted": 0}
         self.reasons: dict[str, int] = {}
 
-    def measure(self, kf: MarginalizedKeyframe) -> GroundScaleMeasured:
+    def measure(self, kf: MarginalizedKeyframe, scale_of: ScaleOf | None = None) -> GroundScaleMeasured:
         """The keyframe's road-plane scale measurement (``accepted`` False with a reason when
-        the road gave none: a segment's first keyframe, no road, too little motion, …)."""
+        the road gave none: a segment's first keyframe, no road, too little motion, a height far
+        from the recent ones, …). ``scale_of``: the graph's scale of a keyframe now (m per its VO
+        unit), for the consistency gate (:mod:`.consistency`; None: heights compared as given)."""
         seg = int(kf.segment_id)
         prev = self._prev.get(seg)
         image = np.asarray(kf.image)
@@ -58,6 +62,9 @@ class GroundScaleMeter:
                     normal_angle_rad=float(res.normal_angle_rad))
         if not res.accepted:
             return self._rejected(base, res.reason)
+        inconsistent = self._consistency.check(int(kf.kf_id), float(res.height), scale_of)
+        if inconsistent:
+            return self._rejected(base, inconsistent)
         self.counts["ground_accepted"] += 1
         return GroundScaleMeasured(**base, scale=self.h_mount_m / float(res.height),
                                    sigma_log=float(self.config.ground_sigma_log), accepted=True)
