@@ -46,6 +46,10 @@ CORNER_BINS = ("5-10", "10-20", "20-40", "40-60")
 STEREO_BINS = ("10-20", "20-40", "40-60")
 
 EXE = str(Path(sys.executable).parent / "metricslam")
+FOLD_SCORE_TEXT = ("Fold score: SLAM scale error (06, 0013: `metricslam run --deterministic` against the poses) or "
+                   "|measured / true − 1| of the back end's scale measurements against the drive's own stereo "
+                   "(1405, no poses). Seeds: EMA weights of each run; ensemble: the mean of the seeds' L3 d_frac "
+                   "in one ONNX graph. Each fold is scored only by runs that never trained on its drive.")
 
 
 def _run(args: list[str]) -> None:
@@ -164,45 +168,52 @@ def decide(folds: dict, default: dict) -> dict:
             "replaces_default": candidate < default_worst}
 
 
+def fold_table(report: dict) -> str:
+    """Per fold and step: each seed's score, the spread, the ensemble's score and its per-bin detail."""
+    seeds = report["seeds"]
+    lines = ["| fold | step | " + " | ".join(f"seed {s}" for s in seeds) + " | spread | ensemble | ensemble detail |",
+             "|" + " --- |" * (5 + len(seeds))]
+    for fold, rows in report["folds"].items():
+        for step, row in rows.items():
+            cells = [f"{row['seeds'][s]['score_pct']:.1f} %" if s in row["seeds"] else "–" for s in seeds]
+            vals = [v["score_pct"] for v in row["seeds"].values()]
+            ens = row["ensemble"]
+            detail = ""
+            if ens and "corners" in ens:
+                detail = ("corners " + " / ".join("–" if ens["corners"][b] is None else f"×{ens['corners'][b]:.2f}"
+                                                  for b in CORNER_BINS)
+                          + f" (m: {', '.join(CORNER_BINS)}); ATE SE(3) {ens['ate_se3_m']:.2f} m")
+            elif ens and "bins" in ens:
+                detail = ("net/stereo " + " / ".join("–" if ens["bins"][b] is None else f"×{ens['bins'][b]:.2f}"
+                                                     for b in STEREO_BINS) + f" (m: {', '.join(STEREO_BINS)})")
+            lines.append(f"| {fold} | {step} | " + " | ".join(cells) + f" | {max(vals) - min(vals):.1f} | "
+                         + (f"{ens['score_pct']:.1f} %" if ens else "–") + f" | {detail} |")
+    return "\n".join(lines)
+
+
+def decision_line(report: dict) -> str:
+    """The rule's decision in one paragraph, with the current default's fold scores."""
+    d, dec = report["default"], report["decision"]
+    default = (f"The default it was measured against (`{report['default_model']}`, never trained on these "
+               "drives): " + ", ".join(f"{f} {v['score_pct']:.1f} %" for f, v in d.items()) + ".")
+    if dec.get("step") is None:
+        return f"{default} Decision: none ({dec.get('reason')})."
+    return (f"{default} Decision by the rule: step **{dec['step']}** (worst fold by step: "
+            + ", ".join(f"{s}: {w['worst_pct']:.1f} %" for s, w in dec["worst_by_step"].items())
+            + "); seed spread at that step: "
+            + ", ".join(f"{f} {p:.1f} points ({dec['seeds_per_fold'][f]} seeds)" for f, p in dec["spread_points"].items())
+            + f"; ships: **{dec['ship']}**; worst fold {dec['candidate_worst_pct']:.1f} % against the default's "
+            f"{dec['default_worst_pct']:.1f} % on the same folds: "
+            + ("replaces the default." if dec["replaces_default"] else "does NOT replace the default."))
+
+
 def markdown(report: dict) -> str:
     lines = ["# Depth v4: leave-one-drive-out folds (bench/depth_v4_folds.py)", "",
              "Rule: docs/history/rule_depth_v4.md (committed before any v4 number).  ",
              f"Command: `{report['command']}`  ", f"Machine: {report['machine']}", ""]
     if report.get("note"):
         lines += [report["note"], ""]
-    lines += ["Fold score: SLAM scale error (06, 0013; `metricslam run --deterministic`) or |measured/true − 1| "
-              "against the drive's own stereo (1405, no poses). Seeds: EMA weights of each run; ensemble: "
-              "mean of the seeds' L3 d_frac in one graph.", "",
-              "| fold | step | " + " | ".join(f"seed {s}" for s in report["seeds"]) + " | spread | ensemble | "
-              "ensemble detail |", "|" + " --- |" * (5 + len(report["seeds"]))]
-    for fold, rows in report["folds"].items():
-        for step, row in rows.items():
-            cells = [f"{row['seeds'][s]['score_pct']:.1f} %" if s in row["seeds"] else "–" for s in report["seeds"]]
-            vals = [v["score_pct"] for v in row["seeds"].values()]
-            ens = row["ensemble"]
-            detail = ""
-            if ens and "corners" in ens:
-                detail = "corners " + " / ".join("–" if ens["corners"][b] is None else f"×{ens['corners'][b]:.2f}"
-                                                  for b in CORNER_BINS) + f" m bins {', '.join(CORNER_BINS)}; ATE {ens['ate_se3_m']:.2f} m"
-            elif ens and "bins" in ens:
-                detail = "net/stereo " + " / ".join("–" if ens["bins"][b] is None else f"×{ens['bins'][b]:.2f}"
-                                                     for b in STEREO_BINS) + f" m bins {', '.join(STEREO_BINS)}"
-            lines.append(f"| {fold} | {step} | " + " | ".join(cells) + f" | {max(vals) - min(vals):.1f} | "
-                         + (f"{ens['score_pct']:.1f} %" if ens else "–") + f" | {detail} |")
-    d = report["default"]
-    lines += ["", "Current default (`" + report["default_model"] + "`): "
-              + ", ".join(f"{f} {v['score_pct']:.1f} %" for f, v in d.items()), ""]
-    dec = report["decision"]
-    if dec.get("step") is None:
-        lines.append(f"Decision: none ({dec.get('reason')}).")
-    else:
-        lines += [f"Decision by the rule: step **{dec['step']}** (worst fold by step: "
-                  + ", ".join(f"{s}: {w['worst_pct']:.1f} %" for s, w in dec["worst_by_step"].items())
-                  + "); seed spread at that step: " + ", ".join(f"{f} {p:.1f} pts ({dec['seeds_per_fold'][f]} seeds)"
-                                                                for f, p in dec["spread_points"].items())
-                  + f"; ships: **{dec['ship']}**; worst fold {dec['candidate_worst_pct']:.1f} % vs the default's "
-                  f"{dec['default_worst_pct']:.1f} % → " + ("replaces the default." if dec["replaces_default"]
-                                                             else "does NOT replace the default.")]
+    lines += [FOLD_SCORE_TEXT, "", fold_table(report), "", decision_line(report)]
     return "\n".join(lines) + "\n"
 
 
@@ -213,16 +224,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("runs/v4_eval"), help="exported models, trajectories, cache")
     ap.add_argument("--steps", type=int, nargs="+", default=[2000, 2500, 3000])
     ap.add_argument("--seeds", type=int, nargs="+", default=[23, 24, 25])
+    ap.add_argument("--baseline", type=Path, default=DEFAULT_MODEL_PATH,
+                    help="the model a candidate must beat (default: the shipped default; once v4 ships, a copy "
+                         "of the model it replaced)")
     ap.add_argument("--note", default="")
     ap.add_argument("--out", type=Path, required=True, help="results path without extension (.json and .md)")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     scorer = Scorer(args.data, args.work)
-    default = {f: scorer(DEFAULT_MODEL_PATH, f, corners=FOLDS[f][1] == "slam") for f in FOLDS}
+    default = {f: scorer(args.baseline, f, corners=FOLDS[f][1] == "slam") for f in FOLDS}
     folds = score_folds(args.runs, args.steps, args.seeds, scorer, args.work)
     report = {"command": command_line("bench.depth_v4_folds"), "machine": describe(), "note": args.note,
               "seeds": [str(s) for s in args.seeds],
-              "default_model": DEFAULT_MODEL_PATH.name, "default": default, "folds": folds,
+              "default_model": args.baseline.name, "default": default, "folds": folds,
               "decision": decide(folds, default)}
     text = markdown(report)
     write_results(args.out, report, text)

@@ -96,6 +96,11 @@ class TrainingError(MetricSlamError):
     """Training configuration or data is invalid."""
 
 
+class MapError(MetricSlamError):
+    """A saved map (docs/maps.md) is missing, corrupt, of another schema version, or does not
+    fit this session (another camera, another depth model); or it cannot be written."""
+
+
 def validation_problems(exc: Exception, env_prefix: str | None = None,
                         from_flags: object = ()) -> str:
     """One line naming each problem of a pydantic ``ValidationError`` (or any error with an

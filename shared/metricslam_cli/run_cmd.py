@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 
+from metricslam_cli.map_options import MapRun, add_map_options
 from metricslam_cli.scale_options import add_scale_options, log_scale_sources, scale_flags
 
 
@@ -126,6 +127,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "live system every keyframe's scale arrives before the next frame")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_scale_options(p)
+    add_map_options(p)
     p.set_defaults(func=run)
     return p
 
@@ -195,12 +197,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     frames = FrameReader(seq)
+    maps = MapRun(args, config, seq.camera) if (args.map or args.save_map) else None
     mcap_log = open_mcap(args.mcap, camera_id(seq.name)) if args.mcap else None  # before any thread
     pipeline = build_session(seq.camera, config, depth_source=depth_source, default_preset=preset)
     logging.getLogger("metricslam.run").info("VO config (%s preset): %s", preset,
                                              pipeline.vo.config.model_dump())
     logging.getLogger("metricslam.run").info("camera%s: %s", f" (from {args.calib})" if args.calib else "",
                                              seq.camera)
+    if maps is not None:
+        maps.attach(pipeline)
     if viewer is not None:
         viewer.attach(pipeline)  # keyframe depth maps arrive as the back end's ScaleMeasured events
     recorder = SessionRecorder(mcap_log, pipeline) if mcap_log is not None else None
@@ -229,12 +234,14 @@ def run(args: argparse.Namespace) -> int:
             recorder.close()  # the final optimized path, after the last solve; closes the file
     wall_s = time.perf_counter() - t0
     traj = pipeline.trajectory()
+    if maps is not None:  # the map saved; with --map, map-frame poses from the relocalized frame on
+        traj = maps.finish(pipeline, traj)
     if args.format == "tum":
         kept = [e for e in traj if e.pose_valid]
         write_tum(args.out, np.array([e.t_ns for e in kept], dtype=np.int64),
                   np.array([e.T_world_cam for e in kept]).reshape(-1, 4, 4))
     else:
-        write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]))
+        write_kitti_poses(args.out, np.array([e.T_world_cam for e in traj]).reshape(-1, 4, 4))
     if streams is not None:
         streams.write(args.live_out, args.continuous_out, args.format)
     stats = pipeline.stats()
@@ -242,6 +249,8 @@ def run(args: argparse.Namespace) -> int:
         stats["continuous"] = streams.stats()
     stats.update(pose_gap_stats(traj, frames.unreadable))
     stats.update(pipeline.scale_history())
+    if maps is not None:
+        stats.update(maps.stats())
     stats.update({"sequence": str(args.seq_dir), "preset": preset, "wall_s": wall_s,
                   "fps": n / wall_s if wall_s > 0 else None, "mode": config.mode,
                   "deterministic": config.deterministic,
@@ -254,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
           f"losses, {stats['fps']:.1f} frames/s (including image loading) -> {args.out}")
     if config.use_scale:
         print(scale_summary(stats))
+    if maps is not None and maps.summary():
+        print(maps.summary())
     if stats["frames_unreadable"] or stats["interpolated"] or stats["pose_invalid"]:
         print(f"{stats['frames_unreadable']} unreadable frames, {stats['interpolated']} poses "
               f"interpolated, {stats['pose_invalid']} frames without a pose (frame lists in --json)")

@@ -149,7 +149,18 @@ class InitialScaleApplied:
     wait_ms: float
 
 
-Event = ScaleMeasured | GroundScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
+@dataclass(frozen=True)
+class KeyframeMarginalized:
+    """The pipeline is handing ``keyframe`` (a :class:`~metricslam.slam.types.MarginalizedKeyframe`)
+    to the back end, while processing frame ``frame_index_now`` (emitted on the tracking thread,
+    before the back end sees it; relocalization into a saved map listens here)."""
+
+    keyframe: object
+    frame_index_now: int
+
+
+Event = (ScaleMeasured | GroundScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
+         | KeyframeMarginalized)
 
 
 class EventBus:

@@ -29,7 +29,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.geometry import sim3, so3
-from metricslam.slam.events import InitialScaleApplied
+from metricslam.slam.events import InitialScaleApplied, KeyframeMarginalized
 from metricslam.slam.initial_scale import InitialScale, InitialScaleConfig, measure_initial_scale
 from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.timing import TimingSummary
@@ -80,12 +80,16 @@ class SlamPipeline:
         self._initial: InitialScale | None = None
         self._scale_states: Counter = Counter()
         self._first_metric_frame: int | None = None
+        self._frame_now = -1  # the frame being processed (KeyframeMarginalized events)
 
     # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
         self._marginalized.add(kf.frame_index)
         self._scale_history.on_keyframe(kf)
         if self.backend is not None:
+            events = getattr(self.backend, "events", None)
+            if events is not None:
+                events.emit(KeyframeMarginalized(kf, self._frame_now))
             t0 = time.perf_counter()
             self.backend.on_keyframe_marginalized(kf)
             self._timings_ms["backend_handoff"].append(1e3 * (time.perf_counter() - t0))
@@ -94,6 +98,7 @@ class SlamPipeline:
     def process(self, frame: Frame) -> PoseEstimate:
         """Track one frame, feed the back end, apply its correction. Never raises on bad input."""
         t0 = time.perf_counter()
+        self._frame_now = int(frame.index)
         est = self.vo.process(frame)
         self._collect_anchors()
         scale_ok, n_factors = False, 0

@@ -15,6 +15,11 @@ gets anything else — wrong magic, truncated header, bad JSON, unknown kind or 
 or extra field, an array whose byte count does not match — gets :class:`CodecError`, never a
 crash. Frames, keys and units follow ``docs/conventions.md``; message fields carry units in
 their names (``t_ns``, ``T_world_cam``, ``fx_px``).
+
+The messages live beside this module, all on :class:`~metricslam.wire.base.Message`:
+``camera_messages`` (frame, calibration, pose, keyframe, status, trajectory), ``map_messages``
+(landmarks, keyframe depth) and ``odometry_message``; :data:`MESSAGE_TYPES` lists them, and every
+one can be imported from here as well (``from metricslam.wire.codec import PoseMessage``).
 """
 
 from __future__ import annotations
@@ -22,26 +27,46 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError
-from metricslam.slam.types import ScaleState, TrackingState
-from metricslam.wire.keys import check_camera_id
-from metricslam.wire.scale_status import ScaleHealthStatus
+from metricslam.wire.base import DTYPES as _DTYPES
+from metricslam.wire.base import Message
+from metricslam.wire.base import as_array as _as_array  # noqa: F401 -- the name before wire.base
+from metricslam.wire.base import finite_pose as _finite_pose  # noqa: F401 -- the name before wire.base
+from metricslam.wire.camera_messages import (
+    STATE_CODES,
+    CalibrationMessage,
+    FrameMessage,
+    KeyframeMessage,
+    PoseMessage,
+    StatusMessage,
+    TrajectoryMessage,
+)
+from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage
+from metricslam.wire.odometry_message import OdometryMessage
+
+__all__ = [
+    "MAGIC", "MAX_HEADER_BYTES", "MAX_MESSAGE_BYTES", "MESSAGE_TYPES", "SCHEMA_VERSION", "STATE_CODES",
+    "ArraySpec", "CalibrationMessage", "Envelope", "FrameMessage", "KeyframeDepthMessage", "KeyframeMessage",
+    "LandmarksMessage", "Message", "OdometryMessage", "PoseMessage", "StatusMessage", "TrajectoryMessage",
+    "decode", "decode_as", "encode",
+]
 
 SCHEMA_VERSION = 1
 MAGIC = b"MSLM"
 MAX_HEADER_BYTES = 1 << 20
 MAX_MESSAGE_BYTES = 256 << 20
 _PREFIX = struct.Struct("<4sI")
-_DTYPES = {"uint8": np.dtype("<u1"), "int64": np.dtype("<i8"), "float32": np.dtype("<f4"),
-           "float64": np.dtype("<f8")}
-#: tracking states as compact codes (index in this tuple) inside trajectory arrays.
-STATE_CODES: tuple[TrackingState, ...] = tuple(TrackingState)
+
+#: every message type the codec speaks, by its ``KIND`` (the envelope's ``kind``)
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.KIND: cls for cls in (FrameMessage, CalibrationMessage, PoseMessage, KeyframeMessage, StatusMessage,
+                              TrajectoryMessage, LandmarksMessage, KeyframeDepthMessage, OdometryMessage)
+}
 
 
 class ArraySpec(BaseModel):
@@ -77,240 +102,6 @@ class Envelope(BaseModel):
     kind: str
     body: dict[str, Any]
     arrays: list[ArraySpec] = Field(max_length=16)
-
-
-class Message(BaseModel):
-    """Base of all messages. Subclasses set ``KIND`` and list their array fields in ``ARRAYS``."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", arbitrary_types_allowed=True)
-    KIND: ClassVar[str] = ""
-    ARRAYS: ClassVar[tuple[str, ...]] = ()
-
-    camera_id: str
-
-    @field_validator("camera_id")
-    @classmethod
-    def _camera_id(cls, camera_id: str) -> str:
-        try:
-            return check_camera_id(camera_id)
-        except CodecError as exc:
-            raise ValueError(str(exc)) from None
-
-
-def _as_array(value: Any, dtype: str, name: str, shape: tuple[int | None, ...] | None = None) -> np.ndarray:
-    """Check dtype (exact) and shape (``None`` = any size) of an array field."""
-    if not isinstance(value, np.ndarray):
-        raise ValueError(f"{name} must be a numpy array, got {type(value).__name__}")
-    if value.dtype != _DTYPES[dtype]:
-        if value.dtype.kind == _DTYPES[dtype].kind and value.dtype.itemsize == _DTYPES[dtype].itemsize:
-            value = value.astype(_DTYPES[dtype])
-        else:
-            raise ValueError(f"{name} must have dtype {dtype}, got {value.dtype}")
-    if shape is not None and (
-        value.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, value.shape))
-    ):
-        raise ValueError(f"{name} must have shape {shape} (None = any), got {value.shape}")
-    return value
-
-
-def _finite_pose(value: Any, name: str) -> np.ndarray:
-    T = _as_array(value, "float64", name, (4, 4))
-    if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise ValueError(f"{name} must be a finite homogeneous 4x4 transform")
-    return T
-
-
-class FrameMessage(Message):
-    """One camera image with its intrinsics (``metricslam/<id>/frame``).
-
-    ``image``: (H, W) uint8 gray or (H, W, 3) uint8 RGB, H x W = camera height x width.
-    ``t_sent_ns``: sender's wall clock at publish time (ns), echoed in the pose for latency.
-    """
-
-    KIND: ClassVar[str] = "frame"
-    ARRAYS: ClassVar[tuple[str, ...]] = ("image",)
-
-    frame_index: int = Field(ge=0)
-    t_ns: int = Field(ge=0)
-    camera: PinholeCamera
-    t_sent_ns: int | None = None
-    image: np.ndarray
-
-    @field_validator("image")
-    @classmethod
-    def _image(cls, image: Any) -> np.ndarray:
-        image = _as_array(image, "uint8", "image")
-        if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
-            raise ValueError(f"image must be (H, W) or (H, W, 3) uint8, got shape {image.shape}")
-        return image
-
-    @model_validator(mode="after")
-    def _image_matches_camera(self) -> "FrameMessage":
-        h, w = self.image.shape[:2]
-        if (w, h) != (self.camera.width_px, self.camera.height_px):
-            raise ValueError(
-                f"image is {w}x{h} but the camera says {self.camera.width_px}x{self.camera.height_px}"
-            )
-        return self
-
-
-class CalibrationMessage(Message):
-    """A camera's intrinsics (``metricslam/<id>/calibration``); frames carry them as well."""
-
-    KIND: ClassVar[str] = "calibration"
-
-    camera: PinholeCamera
-    baseline_m: float | None = Field(default=None, gt=0)
-
-
-class PoseMessage(Message):
-    """The pose of one input frame (``metricslam/<id>/pose``), published for every frame.
-
-    ``T_world_cam``: (4, 4) float64 camera-to-world, metres once ``scale_established``.
-    ``processing_ms``: service time from frame receipt to this publish.
-    ``scale_state``: what the pose's scale rests on (``unscaled`` / ``provisional`` / ``metric``,
-    :class:`~metricslam.slam.types.ScaleState`) and ``scale_factors`` the learned scale
-    measurements behind it; both optional (None from senders that predate them: then read
-    ``scale_established`` alone, :meth:`effective_scale_state`).
-    """
-
-    KIND: ClassVar[str] = "pose"
-    ARRAYS: ClassVar[tuple[str, ...]] = ("T_world_cam",)
-
-    frame_index: int = Field(ge=0)
-    t_ns: int = Field(ge=0)
-    state: TrackingState
-    is_keyframe: bool = False
-    segment_id: int = Field(default=0, ge=0)
-    scale_established: bool = False
-    processing_ms: float = Field(default=0.0, ge=0)
-    t_sent_ns: int | None = None
-    scale_state: ScaleState | None = None
-    scale_factors: int | None = Field(default=None, ge=0)
-    T_world_cam: np.ndarray
-
-    @field_validator("T_world_cam")
-    @classmethod
-    def _pose(cls, T: Any) -> np.ndarray:
-        return _finite_pose(T, "T_world_cam")
-
-    def effective_scale_state(self) -> ScaleState:
-        """``scale_state``, or for an older sender ``metric`` if ``scale_established`` else
-        ``unscaled`` (it had no provisional scale)."""
-        if self.scale_state is not None:
-            return self.scale_state
-        return ScaleState.METRIC if self.scale_established else ScaleState.UNSCALED
-
-
-class KeyframeMessage(Message):
-    """A new keyframe (``metricslam/<id>/keyframe``): its pose and, optionally, its image."""
-
-    KIND: ClassVar[str] = "keyframe"
-    ARRAYS: ClassVar[tuple[str, ...]] = ("T_world_cam", "image")
-
-    frame_index: int = Field(ge=0)
-    t_ns: int = Field(ge=0)
-    segment_id: int = Field(default=0, ge=0)
-    scale_established: bool = False
-    T_world_cam: np.ndarray
-    image: np.ndarray | None = None
-
-    @field_validator("T_world_cam")
-    @classmethod
-    def _pose(cls, T: Any) -> np.ndarray:
-        return _finite_pose(T, "T_world_cam")
-
-    @field_validator("image")
-    @classmethod
-    def _image(cls, image: Any) -> np.ndarray | None:
-        return None if image is None else FrameMessage._image(image)
-
-
-class StatusMessage(Message):
-    """Health of one camera's SLAM session (``metricslam/<id>/status``), published periodically.
-
-    ``depth_reachable``: None until the depth service was tried (or when scale is off); False
-    means keyframes get NO learned scale factors until it answers (``depth_error`` says why).
-    ``depth_outages``: times the depth service became unreachable since the service started.
-    ``scale_state``: the latest pose's (optional; ``unscaled`` while no depth source answers).
-    ``latency_ms_*``: frame receipt -> pose publish inside the service, over a recent window.
-    ``event`` / ``event_detail``: set on one-off statuses about the camera's session
-    (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state").
-    ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
-    """
-
-    KIND: ClassVar[str] = "status"
-
-    t_ns: int = Field(ge=0)
-    frames_received: int = Field(ge=0)
-    frames_processed: int = Field(ge=0)
-    queue_drops: int = Field(ge=0)
-    malformed: int = Field(ge=0)
-    queue_depth: int = Field(ge=0)
-    fps: float = Field(ge=0)
-    latency_ms_p50: float | None = None
-    latency_ms_p99: float | None = None
-    tracking_state: TrackingState | None = None
-    scale_established: bool = False
-    keyframes: int = Field(default=0, ge=0)
-    depth_url: str | None = None
-    depth_reachable: bool | None = None
-    depth_error: str | None = None
-    depth_outages: int = Field(default=0, ge=0)
-    scale_state: ScaleState | None = None
-    session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
-    event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over"] | None = None
-    event_detail: str | None = Field(default=None, max_length=1000)
-    scale_health: ScaleHealthStatus | None = None
-
-
-class TrajectoryMessage(Message):
-    """The whole current (optimized) trajectory of a camera, answer of ``…/trajectory``.
-
-    ``frame_index`` (N,) int64, ``t_ns`` (N,) int64, ``T_world_cam`` (N, 4, 4) float64,
-    ``state_code`` (N,) uint8 index into :data:`STATE_CODES`.
-    """
-
-    KIND: ClassVar[str] = "trajectory"
-    ARRAYS: ClassVar[tuple[str, ...]] = ("frame_index", "t_ns", "T_world_cam", "state_code")
-
-    scale_established: bool = False
-    frame_index: np.ndarray
-    t_ns: np.ndarray
-    T_world_cam: np.ndarray
-    state_code: np.ndarray
-
-    @model_validator(mode="after")
-    def _consistent(self) -> "TrajectoryMessage":
-        n = len(self.frame_index) if isinstance(self.frame_index, np.ndarray) and self.frame_index.ndim == 1 else -1
-        object.__setattr__(self, "frame_index", _as_array(self.frame_index, "int64", "frame_index", (None,)))
-        object.__setattr__(self, "t_ns", _as_array(self.t_ns, "int64", "t_ns", (n,)))
-        object.__setattr__(self, "T_world_cam", _as_array(self.T_world_cam, "float64", "T_world_cam", (n, 4, 4)))
-        codes = _as_array(self.state_code, "uint8", "state_code", (n,))
-        if np.any(codes >= len(STATE_CODES)):
-            raise ValueError(f"state_code values must be < {len(STATE_CODES)}")
-        object.__setattr__(self, "state_code", codes)
-        return self
-
-    @property
-    def states(self) -> list[TrackingState]:
-        return [STATE_CODES[c] for c in self.state_code]
-
-    @staticmethod
-    def state_codes(states: list[TrackingState]) -> np.ndarray:
-        return np.array([STATE_CODES.index(TrackingState(s)) for s in states], dtype=np.uint8)
-
-
-MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.KIND: cls for cls in (FrameMessage, CalibrationMessage, PoseMessage, KeyframeMessage,
-                              StatusMessage, TrajectoryMessage)
-}
-# map messages live in their own module (it builds on Message, so it is imported here, last)
-from metricslam.wire.map_messages import KeyframeDepthMessage, LandmarksMessage  # noqa: E402
-
-from metricslam.wire.odometry_message import OdometryMessage  # noqa: E402
-
-MESSAGE_TYPES.update({cls.KIND: cls for cls in (LandmarksMessage, KeyframeDepthMessage, OdometryMessage)})
 
 
 def encode(message: Message) -> bytes:

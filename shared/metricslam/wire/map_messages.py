@@ -1,6 +1,6 @@
 """Wire messages that describe the map rather than one frame: the local window's landmarks and
 a keyframe's coarse metric depth. Encoded by :mod:`metricslam.wire.codec` like every message
-(this module registers them in its ``MESSAGE_TYPES``).
+(its ``MESSAGE_TYPES`` lists them).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field, field_validator
 
-from metricslam.wire.codec import Message, _as_array
+from metricslam.wire.base import Message, as_array
 
 
 class LandmarksMessage(Message):
@@ -32,7 +32,7 @@ class LandmarksMessage(Message):
     @field_validator("points_world")
     @classmethod
     def _points(cls, points: Any) -> np.ndarray:
-        return _as_array(points, "float32", "points_world", (None, 3))
+        return as_array(points, "float32", "points_world", (None, 3))
 
 
 class KeyframeDepthMessage(Message):
@@ -55,7 +55,7 @@ class KeyframeDepthMessage(Message):
     @field_validator("inv_depth_per_m")
     @classmethod
     def _grid(cls, grid: Any) -> np.ndarray:
-        return _as_array(grid, "float32", "inv_depth_per_m", (None, None))
+        return as_array(grid, "float32", "inv_depth_per_m", (None, None))
 
     def depth_m(self) -> np.ndarray:
         """(h, w) float32 depth in metres; NaN where the inverse depth is not positive."""

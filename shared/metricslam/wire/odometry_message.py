@@ -4,7 +4,7 @@ One :class:`OdometryMessage` per processed frame, from
 :class:`metricslam.trajectory.continuous.ContinuousOdometry`: a pose that never jumps (the live
 pose's corrections blended in over ``horizon_s``), its split into ``T_world_odom · T_odom_cam``
 (REP 105's map → odom), the camera's twist, and what the pose's scale rests on. Encoded by
-:mod:`metricslam.wire.codec` like every message (this module registers it in ``MESSAGE_TYPES``).
+:mod:`metricslam.wire.codec` like every message (its ``MESSAGE_TYPES`` lists it).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from metricslam.slam.types import ScaleState, TrackingState
-from metricslam.wire.codec import Message, _as_array, _finite_pose
+from metricslam.wire.base import Message, as_array, finite_pose
 
 
 class OdometryMessage(Message):
@@ -51,12 +51,12 @@ class OdometryMessage(Message):
     @field_validator("T_world_cam", "T_world_odom", "T_odom_cam")
     @classmethod
     def _pose(cls, T: Any, info) -> np.ndarray:
-        return _finite_pose(T, info.field_name)
+        return finite_pose(T, info.field_name)
 
     @field_validator("twist_cam")
     @classmethod
     def _twist(cls, twist: Any) -> np.ndarray:
-        twist = _as_array(twist, "float64", "twist_cam", (6,))
+        twist = as_array(twist, "float64", "twist_cam", (6,))
         if not np.all(np.isfinite(twist)):
             raise ValueError("twist_cam must be finite")
         return twist

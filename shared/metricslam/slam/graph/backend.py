@@ -71,6 +71,9 @@ class GlobalBackend:
                                             self.config.scale_sigma_log, self.config.scale_huber_k)
             self.scale_health.attach(self.events)
         self._scale_sigma_log: float | None = None  # the newest solved keyframe's, last read
+        #: leave the loop detector's features open at :meth:`close` (a map is saved from them
+        #: afterwards; the saver closes the detector)
+        self.keep_loop_database = False
         self.estimator = GlobalEstimator(self.config, depth_source is not None, loop_detector, self.events,
                                          ground_huber_k=ground_k)
         self._lock = threading.RLock()  # one estimator call at a time
@@ -203,7 +206,7 @@ class GlobalBackend:
         with self._lock:
             self.estimator.finish()
             self._take_solved()
-            if self.estimator.loop_detector is not None:
+            if self.estimator.loop_detector is not None and not self.keep_loop_database:
                 self.estimator.loop_detector.close()  # its temporary feature file
 
     def stats(self) -> dict:

@@ -29,6 +29,7 @@ from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.feature_store import FeatureStore
 from metricslam.slam.loop.verification import (
+    LandmarkFeatures,
     landmark_features,
     verify,
 )
@@ -183,6 +184,42 @@ class LoopDetector:
         candidate reads that failed (both 0 when the temporary directory works)."""
         return {"loop_features_in_ram": self._store.n_kept_in_memory,
                 "loop_feature_read_errors": self._store.n_read_errors}
+
+    def export_database(self) -> tuple[BinaryVocabulary, np.ndarray, np.ndarray, list[tuple]] | None:
+        """What a saved map keeps of the place-recognition database (:mod:`metricslam.slam.map`):
+        ``(vocabulary, kf_ids (M,), bag-of-words rows (M, k), features per row)``, each row's
+        features ``(uv_px (n, 2), descriptors (n, 32), points (n, 3) keyframe VO units, exact
+        (n,))``: its ORB corners with depth, then its VO-landmark features (``exact``). None
+        when no keyframe was indexed. A run too short to have trained its vocabulary trains
+        one here from the keyframes it indexed (the detector itself is not changed)."""
+        vocab, db = self._vocab, self._db
+        if vocab is None:
+            sets = [d for _, d in self._pending if d is not None and len(d)]
+            if not sets:
+                return None
+            vocab = BinaryVocabulary.train(sets, self.config.vocabulary_words)
+            db = BowDatabase(vocab.size)
+            for k, d in self._pending:
+                db.add(k, vocab.bow(d))
+        ids, rows = db.rows()
+        keep, feats = [], []
+        for i, k in enumerate(ids):
+            lm = self._store.landmarks(int(k))
+            if lm is None:
+                continue
+            parts = [(lm.uv_px, lm.descriptors, lm.points,
+                      np.ones(len(lm.points), bool) if lm.exact is None else lm.exact)]
+            packed = self._store.corners(int(k))
+            if packed is not None:
+                c = packed.unpack()
+                ok = np.isfinite(c.points).all(axis=1)
+                parts.insert(0, (c.uv_px[ok], c.descriptors[ok], c.points[ok], np.zeros(int(ok.sum()), bool)))
+            keep.append(i)
+            feats.append((np.concatenate([np.asarray(p[0], float).reshape(-1, 2) for p in parts]),
+                          np.concatenate([np.asarray(p[1], np.uint8).reshape(-1, 32) for p in parts]),
+                          np.concatenate([np.asarray(p[2], float).reshape(-1, 3) for p in parts]),
+                          np.concatenate([np.asarray(p[3], bool).reshape(-1) for p in parts])))
+        return vocab, ids[keep], rows[keep], feats
 
     def close(self) -> None:
         """Release the verification features (their temporary file); queries after this verify

@@ -106,6 +106,11 @@ class BowDatabase:
     def row(self, i: int) -> np.ndarray:
         return self._M[i]
 
+    def rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of all ``(kf_ids (M,) int64, rows (M, k) float32)``, in insertion order."""
+        n = len(self._ids)
+        return np.asarray(self._ids, dtype=np.int64), self._M[:n].copy()
+
     def forget_oldest(self) -> int:
         """Drop the oldest row (positions of the others shift down by one); its keyframe id."""
         kf_id = self._ids.pop(0)

@@ -1,0 +1,198 @@
+"""``Relocalizer``: puts a new session into a saved map (``docs/maps.md``), then into its frame.
+
+Every keyframe the session marginalizes is a query (:class:`~metricslam.slam.events.KeyframeMarginalized`;
+in scale mode once its depth answer arrived, :class:`~metricslam.slam.events.ScaleMeasured`):
+ORB retrieval descriptors → bag-of-words with the *map's* vocabulary → cosine scores against
+the map's rows → the best ``n_candidates`` are verified as the loop detector verifies a loop
+(:func:`metricslam.slam.loop.corners.verify_corners`: essential-matrix check, PnP of the
+keyframe's pixels against the map keyframe's metric 3-D corners, scale from the network depth of
+the keyframe's own corners, its VO units), with the keyframe's ORB corners and VO landmarks.
+Without learned scale (no depth answers) the VO landmarks alone are verified
+(:func:`metricslam.slam.loop.verification.verify`).
+A verified match gives ``S_mapkf_kf`` (metres per session-keyframe VO unit), hence
+
+    S_map_world = T_map_mapkf · S_mapkf_kf · S_world_kf⁻¹
+
+with ``S_world_kf`` the session's global-graph estimate of that keyframe. Because the map is
+metric, this carries metric scale into the session even before its own learned scale engaged.
+:meth:`Relocalizer.S_map_world` combines every verified match against the *final* graph (a
+robust mean around the medoid; matches that disagree are counted as rejected). The session
+counts as relocalized from the frame being processed when the first match verified
+(``first_frame``); frames before it are reported as not localized, never given a pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.depth.model import to_gray_u8
+from metricslam.geometry import sim3, so3
+from metricslam.depth.sample import sample_map
+from metricslam.slam.events import KeyframeMarginalized, ScaleMeasured
+from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.loop import corners as corner_mod
+from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
+from metricslam.slam.loop.verification import LandmarkFeatures, landmark_features, verify
+from metricslam.slam.loop.vocabulary import BinaryVocabulary
+from metricslam.slam.map.format import SavedMap
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RelocMatch:
+    """One verified match of session keyframe ``kf_frame`` to map keyframe ``map_kf_id``."""
+
+    map_kf_id: int
+    kf_frame: int
+    frame_now: int
+    S_mapkf_kf: np.ndarray
+    n_inliers: int
+    score: float
+
+
+class Relocalizer:
+    """Matches a session's keyframes against a :class:`SavedMap` (module docstring).
+
+    Args:
+        saved: the loaded map.
+        camera: the session's camera (checked against the map's by the caller).
+        config: loop parameters (retrieval ORB, verification thresholds, ``n_candidates``).
+        seed: RANSAC seed (deterministic given the same keyframes).
+    """
+
+    def __init__(self, saved: SavedMap, camera: PinholeCamera, config: LoopConfig | None = None,
+                 seed: int = 0) -> None:
+        self.config = config or LoopConfig()
+        self.camera = camera
+        kf, db = saved.arrays["keyframes"], saved.arrays["loop_db"]
+        self._T_map_kf = {int(k): T for k, T in zip(kf["kf_id"], kf["T_map_kf"])}
+        self._vocab = BinaryVocabulary(db["vocabulary_words"], db["vocabulary_idf"])
+        self._ids = db["bow_kf_id"]
+        self._rows = db["bow_rows"]
+        o = db["feature_offsets"]
+        self._features = [corner_mod.CornerFeatures(db["feature_uv_px"][a:b].astype(float),
+                                                    db["feature_descriptors"][a:b],
+                                                    db["feature_points_kf_m"][a:b].astype(float))
+                          for a, b in zip(o[:-1], o[1:])]
+        self._exact = [db["feature_exact"][a:b] for a, b in zip(o[:-1], o[1:])]
+        # the map side is metric: PnP on it measures the pose, the query's network depth the scale
+        self._corner_config = self.config.model_copy(update={"measurement": "network"})
+        self._orb = retrieval_orb(self.config)
+        self._orb_landmarks = cv2.ORB_create(nlevels=1)
+        self._orb_corners = cv2.ORB_create(nfeatures=self.config.n_corner_features, nlevels=4,
+                                           fastThreshold=12)
+        self._waiting: dict[int, tuple] = {}  # kf_id -> (keyframe, frame_now) until its depth
+        self._rng = np.random.default_rng(seed)
+        self._prev_bow: np.ndarray | None = None
+        self.matches: list[RelocMatch] = []
+        self.first_frame: int | None = None
+        self.n_queries = 0
+
+    def attach(self, session) -> None:
+        """Query every keyframe ``session`` (a pipeline with a back end) marginalizes."""
+        self._with_depth = getattr(session.backend, "depth_source", None) is not None
+        session.backend.events.subscribe(self._on_event, KeyframeMarginalized, ScaleMeasured)
+
+    def _on_event(self, ev) -> None:
+        if isinstance(ev, KeyframeMarginalized):
+            if self._with_depth:
+                self._waiting[int(ev.keyframe.kf_id)] = (ev.keyframe, ev.frame_index_now)
+                return
+            match = self.query(ev.keyframe, ev.frame_index_now)
+        else:
+            got = self._waiting.pop(int(ev.kf_id), None)
+            if got is None:
+                return
+            match = self.query(got[0], got[1], ev.inv_depth_map_per_m)
+        if match is not None:
+            self.matches.append(match)
+            if self.first_frame is None:
+                self.first_frame = match.frame_now
+                log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
+                         "(%d inliers)", match.frame_now, match.kf_frame, match.map_kf_id, match.n_inliers)
+
+    def query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None = None) -> RelocMatch | None:
+        """Verify keyframe ``kf`` (a MarginalizedKeyframe; ``inv_depth_map`` (h, w) 1/m its
+        network depth, None: landmarks only) against its best map candidates."""
+        self.n_queries += 1
+        cfg = self.config
+        gray = to_gray_u8(kf.image)
+        v = self._vocab.bow(retrieval_descriptors(self._orb, gray, cfg.image_scale))
+        ref = None if self._prev_bow is None else float(self._prev_bow @ v)
+        self._prev_bow = v
+        if not len(self._ids) or not np.any(v):
+            return None
+        scores = self._rows @ v
+        order = np.argsort(-scores, kind="stable")[: cfg.n_candidates]
+        lm = landmark_features(self._orb_landmarks, gray, kf.camera, kf.landmarks_uv_px,
+                               kf.landmarks_inv_depth)
+        new = None if inv_depth_map is None else self._corners(gray, kf, lm, inv_depth_map)
+        for i in order:
+            if scores[i] <= 0 or (ref is not None and ref > 0 and scores[i] < cfg.min_score_ratio * ref):
+                break
+            if new is not None:
+                res = corner_mod.verify_corners(new, self._features[i], kf.camera, self._corner_config, self._rng)
+            else:
+                f, ex = self._features[i], self._exact[i]
+                res = verify(lm, LandmarkFeatures(f.uv_px[ex], f.points[ex], f.descriptors[ex]),
+                             kf.camera, cfg, self._rng)
+            if res is not None:
+                return RelocMatch(int(self._ids[i]), int(kf.frame_index), int(frame_now),
+                                  res.S_old_new, res.n_inliers, float(scores[i]))
+        return None
+
+    def _corners(self, gray, kf, lm: LandmarkFeatures, inv_depth_map) -> corner_mod.CornerFeatures | None:
+        """The keyframe's ORB corners with network depth plus its landmark features, 3-D in its
+        VO units (the loop detector's corner features), or None without a usable depth map."""
+        size = (int(gray.shape[1]), int(gray.shape[0]))
+        lm_uv = np.asarray(kf.landmarks_uv_px, float).reshape(-1, 2)
+        m_per_unit = corner_mod.metres_per_unit(kf.landmarks_inv_depth, sample_map(inv_depth_map, lm_uv, size))
+        if m_per_unit is None:
+            return None
+        uv, desc = corner_mod.detect_corners(self._orb_corners, gray)
+        pts = corner_mod.network_points(uv, sample_map(inv_depth_map, uv, size), m_per_unit, kf.camera)
+        return corner_mod.CornerFeatures(np.vstack([uv, lm.uv_px]), np.vstack([desc, lm.descriptors]),
+                                         np.vstack([pts, lm.points]))
+
+    def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray], gate_m: float = 2.0,
+                    gate_rad: float = 0.1, gate_log_scale: float = 0.1) -> tuple[np.ndarray | None, int, int]:
+        """``(S_map_world (4, 4) or None, matches used, matches rejected)`` from every match
+        whose session keyframe is in ``S_world_kf_by_frame`` (the back end's
+        ``optimized_keyframe_poses()``): the medoid's Sim(3), refined by the tangent mean of
+        the matches within the gates of it."""
+        cands = []
+        for m in self.matches:
+            S_world_kf = S_world_kf_by_frame.get(m.kf_frame)
+            if S_world_kf is not None:
+                T = sim3.from_se3(self._T_map_kf[m.map_kf_id])
+                cands.append(T @ m.S_mapkf_kf @ sim3.inverse(S_world_kf))
+        if not cands:
+            return None, 0, len(self.matches)
+
+        def close(a, b) -> bool:
+            Ra, ta, sa = sim3.split(a)
+            Rb, tb, sb = sim3.split(b)
+            return (np.linalg.norm(ta - tb) < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
+                    and abs(np.log(sa / sb)) < gate_log_scale)
+
+        support = [sum(close(a, b) for b in cands) for a in cands]
+        medoid = cands[int(np.argmax(support))]
+        kept = [c for c in cands if close(medoid, c)]
+        mean = np.mean([sim3.local(medoid, c) for c in kept], axis=0)
+        return sim3.retract(medoid, mean), len(kept), len(self.matches) - len(kept)
+
+
+def to_map_frame(S_map_world: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """Rigid ``T_map_cam`` (4, 4): rotation ``R_map_world·R_world_cam``, position
+    ``S_map_world · t_world_cam`` (a metric pose in the map frame)."""
+    R, t, s = sim3.split(np.asarray(S_map_world, float))
+    out = np.eye(4)
+    out[:3, :3] = R @ T_world_cam[:3, :3]
+    out[:3, 3] = s * R @ T_world_cam[:3, 3] + t
+    return out
