@@ -88,7 +88,9 @@ def test_poses_records_until_ctrl_c(tmp_path: Path) -> None:
     from metricslam_slam.supervisor.router import open_router
     from metricslam_slam.zenoh_config import open_client
 
-    endpoint = "tcp/127.0.0.1:17693"
+    from metricslam_slam.supervisor.launcher import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     client = open_client(endpoint)
     out = tmp_path / "est.tum"
@@ -96,15 +98,20 @@ def test_poses_records_until_ctrl_c(tmp_path: Path) -> None:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert "Ctrl-C" in proc.stdout.readline()
-        time.sleep(1.5)  # the recorder's subscription reaches the router
+        publisher = client.declare_publisher(keys.key("cam0", "pose"))
+        deadline = time.monotonic() + 30  # until zenoh knows the recorder's subscription (slow when loaded)
+        while not publisher.matching_status.matching:
+            assert time.monotonic() < deadline, "the poses recorder never subscribed"
+            time.sleep(0.01)
         for i in (1, 2, 3):
             T = np.eye(4)
             T[0, 3] = float(i)
-            client.put(keys.key("cam0", "pose"), encode(PoseMessage(
+            publisher.put(encode(PoseMessage(
                 camera_id="cam0", frame_index=i, t_ns=i * 10**8, state=TrackingState.TRACKING,
                 scale_established=True, scale_state=ScaleState.METRIC, T_world_cam=T)))
-        time.sleep(1.0)
+        time.sleep(2.0)  # delivery to the recorder (loopback; slow when loaded)
         assert proc.poll() is None, proc.stdout.read()  # still recording: no --frames to reach
+        publisher.undeclare()
         proc.send_signal(signal.SIGINT)
         assert proc.wait(30) == 0
         printed = proc.stdout.read()
