@@ -7,6 +7,8 @@ geometric Sim(3) verification (:mod:`metricslam.slam.map.relocalizer`), and writ
 in the map frame from the first relocalized frame on: the frames before it have no map-frame
 pose and are left out of the file (KITTI: the file's first line is frame
 ``map.first_localized_frame``; TUM: timestamps say which), counted in the summary and ``--json``.
+A ``--map`` run that never relocalizes writes an empty pose file and its ``--json``, then exits
+with a one-line error (code 1).
 """
 
 from __future__ import annotations
@@ -77,7 +79,8 @@ class MapRun:
         self._stats["map"] = {
             "path": str(self.args.map), "relocalized": first is not None,
             "first_localized_frame": first, "unlocalized_frames": len(trajectory) - len(kept),
-            "relocalization_queries": reloc.n_queries, "relocalization_matches": len(reloc.matches),
+            "relocalization_queries": reloc.n_queries,
+            "relocalization_query_ms_mean": float(sum(reloc.query_ms) / max(len(reloc.query_ms), 1)), "relocalization_matches": len(reloc.matches),
             "matches_used": used, "matches_rejected": rejected,
             "map_keyframes": self.saved.n_keyframes,
             "S_map_world": None if S is None else S.tolist(),
@@ -101,6 +104,16 @@ class MapRun:
         finally:
             if detector is not None:
                 detector.close()
+
+    def raise_if_not_relocalized(self) -> None:
+        """After the files are written: a ``--map`` run that never relocalized is an error."""
+        from metricslam.errors import MapError
+
+        m = self._stats.get("map")
+        if m is not None and not m["relocalized"]:
+            raise MapError(f"never relocalized into map {m['path']} ({m['relocalization_queries']} keyframe "
+                           f"queries, {m['relocalization_matches']} verified): no map-frame poses were written; "
+                           "is this the place (and camera) the map was built in?")
 
     def stats(self) -> dict:
         return dict(self._stats)

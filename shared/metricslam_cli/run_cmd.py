@@ -272,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(stats, indent=2, default=float) + "\n")
+    if maps is not None:
+        maps.raise_if_not_relocalized()
     if config.use_scale and not stats["scale_engaged"]:
         raise ScaleError(f"learned scale never engaged, so {args.out} is not metric (the VO's arbitrary "
                          f"scale, not metres; {scale_summary(stats)}). Check the depth model "

@@ -29,7 +29,6 @@ from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.feature_store import FeatureStore
 from metricslam.slam.loop.verification import (
-    LandmarkFeatures,
     landmark_features,
     verify,
 )

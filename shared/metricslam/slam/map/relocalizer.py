@@ -24,6 +24,7 @@ counts as relocalized from the frame being processed when the first match verifi
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -93,6 +94,7 @@ class Relocalizer:
         self.matches: list[RelocMatch] = []
         self.first_frame: int | None = None
         self.n_queries = 0
+        self.query_ms: list[float] = []  # wall time of each query (retrieval + verification)
 
     def attach(self, session) -> None:
         """Query every keyframe ``session`` (a pipeline with a back end) marginalizes."""
@@ -120,6 +122,13 @@ class Relocalizer:
     def query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None = None) -> RelocMatch | None:
         """Verify keyframe ``kf`` (a MarginalizedKeyframe; ``inv_depth_map`` (h, w) 1/m its
         network depth, None: landmarks only) against its best map candidates."""
+        t0 = time.perf_counter()
+        try:
+            return self._query(kf, frame_now, inv_depth_map)
+        finally:
+            self.query_ms.append(1e3 * (time.perf_counter() - t0))
+
+    def _query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None) -> RelocMatch | None:
         self.n_queries += 1
         cfg = self.config
         gray = to_gray_u8(kf.image)

@@ -1,0 +1,228 @@
+"""Saved maps (docs/maps.md): size and save/load time per 1,000 keyframes; relocalization success,
+latency and map-frame accuracy on a rendered revisit and on KITTI odometry 06.
+
+* **Size and I/O**: the rendered revisit's session-1 map, its keyframes tiled (new ids, same
+  content) to 1,000 keyframes, saved and loaded ``--repeats`` times (median wall time; bytes on
+  disk).
+* **Rendered revisit** (the e2e test's setup, ``tests/test_map_relocalize.py``): loop render
+  (300 frames, seed 3, 620x188); session 1 = frames 0-149 ``--save-map``; session 2 = frames
+  190-299 ``--map`` (starts outside the map, re-enters it from behind). Reports the frame it
+  relocalized at vs. the first frame within 10 m of the mapped path, position RMSE in the map
+  frame against ground truth rigidly aligned to session 1 over the revisited stretch (and session
+  1's own RMSE there), the scale of ``S_map_world``, and a map of another world (seed 5), which
+  must not relocalize.
+* **KITTI 06** (51 frames): session 1 = all frames ``--save-map``; session 2 = frames 10-50 and
+  20-50 as their own folder ``--map`` (the same images from another start: a fair relocalization check,
+  not a revisit). Reports the relocalized frame and, without any alignment, session 2's map-frame
+  positions against session 1's for the same frames, in % of that stretch's path length.
+
+Example::
+
+    .venv/bin/python -m bench.maps --work /tmp/maps_bench --out bench/results/maps
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench.machine import command_line, publish
+from metricslam.geometry import sim3
+from metricslam.geometry.align import align_trajectory
+from metricslam.slam.map.format import SavedMap, load_map, save_map
+from metricslam.trajectory.io import read_kitti_poses
+from metricslam_cli.main import main as cli
+
+KITTI06 = Path("../shared/data/kitti_odometry/sequences/06")
+KITTI06_POSES = Path("../shared/data/kitti_odometry/poses/06.txt")
+
+
+def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None) -> Path:
+    """Frames ``start .. stop-1`` of a KITTI-layout folder as a new folder, renumbered from 0
+    (``poses/00.txt`` cut from ``poses`` or from the source's own)."""
+    dst.mkdir(parents=True, exist_ok=True)
+    shutil.copy(src / "calib.txt", dst / "calib.txt")
+    for sub in ("image_0", "image_1", "depth_0"):
+        if (src / sub).is_dir():
+            (dst / sub).mkdir(exist_ok=True)
+            for j, i in enumerate(range(start, stop)):
+                shutil.copy(src / sub / f"{i:06d}.png", dst / sub / f"{j:06d}.png")
+    times = (src / "times.txt").read_text().split()[start:stop]
+    (dst / "times.txt").write_text("".join(f"{t}\n" for t in times))
+    poses = poses or src / "poses" / "00.txt"
+    if poses.is_file():
+        (dst / "poses").mkdir(exist_ok=True)
+        (dst / "poses" / "00.txt").write_text("".join(f"{ln}\n" for ln in poses.read_text().splitlines()[start:stop]))
+    return dst
+
+
+def run(seq: Path, out: Path, *flags: str) -> tuple[int, dict]:
+    code = cli(["run", str(seq), "--out", str(out), "--json", str(out.with_suffix(".json")),
+                "--deterministic", "--no-progress", *flags])
+    return code, json.loads(out.with_suffix(".json").read_text())
+
+
+def tiled(saved: SavedMap, n_kf: int) -> SavedMap:
+    """``saved`` with its keyframes (and their rows and features) repeated to ``n_kf``."""
+    kf, lm, db = (saved.arrays[g] for g in ("keyframes", "landmarks", "loop_db"))
+    n = len(kf["kf_id"])
+    reps = -(-n_kf // n)
+    step = int(kf["kf_id"].max()) + 1
+    take = np.arange(n_kf)
+    src = take % n
+    shift = (take // n) * step
+    keyframes = {k: v[src] for k, v in kf.items()}
+    keyframes["kf_id"] = kf["kf_id"][src] + shift
+    row_reps = [r for r in range(reps) if r * n < n_kf]
+    counts = np.diff(db["feature_offsets"])
+    per = {k: np.concatenate([v] * len(row_reps)) for k, v in db.items() if k.startswith("feature_") and k != "feature_offsets"}
+    loop_db = {"vocabulary_words": db["vocabulary_words"], "vocabulary_idf": db["vocabulary_idf"],
+               "bow_kf_id": np.concatenate([db["bow_kf_id"] + r * step for r in row_reps]),
+               "bow_rows": np.concatenate([db["bow_rows"]] * len(row_reps)),
+               "feature_offsets": np.concatenate([[0], np.cumsum(np.tile(counts, len(row_reps)))]).astype(np.int64),
+               **per}
+    landmarks = {"p_map_m": np.concatenate([lm["p_map_m"]] * len(row_reps)),
+                 "obs_kf_id": np.concatenate([lm["obs_kf_id"] + r * step for r in row_reps]),
+                 "obs_uv_px": np.concatenate([lm["obs_uv_px"]] * len(row_reps))}
+    return SavedMap(saved.camera, saved.depth_model_id, saved.metric,
+                    {"keyframes": keyframes, "landmarks": landmarks, "loop_db": loop_db}, saved.source)
+
+
+def size_and_io(map_dir: Path, work: Path, repeats: int) -> dict:
+    big = tiled(load_map(map_dir), 1000)
+    save_s, load_s = [], []
+    for _ in range(repeats):
+        target = work / "map1000"
+        t0 = time.perf_counter()
+        save_map(big, target)
+        save_s.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        load_map(target)
+        load_s.append(time.perf_counter() - t0)
+    size = sum(p.stat().st_size for p in target.rglob("*") if p.is_file())
+    return {"keyframes": big.n_keyframes, "bow_rows": int(len(big.arrays["loop_db"]["bow_kf_id"])),
+            "features": int(len(big.arrays["loop_db"]["feature_uv_px"])), "bytes": size,
+            "mb": size / 1e6, "save_s_median": statistics.median(save_s),
+            "load_s_median": statistics.median(load_s), "repeats": repeats}
+
+
+def rendered_revisit(work: Path) -> dict:
+    from metricslam.synth.scene import generate_sequence
+
+    src = work / "loop300"
+    if not (src / "poses" / "00.txt").is_file():
+        generate_sequence(src, 300, seed=3, size=(620, 188), path="loop")
+    s1, s2 = cut(src, work / "r1", 0, 150), cut(src, work / "r2", 190, 300)
+    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"))
+    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"))
+    m = st2["map"]
+    gt = read_kitti_poses(src / "poses" / "00.txt")
+    entry = next(j for j in range(110) if np.min(np.linalg.norm(gt[:150, :3, 3] - gt[190 + j, :3, 3], axis=1)) < 10)
+    e1 = read_kitti_poses(work / "r1.txt")
+    skip = set(st1["pose_invalid_frame_indices"]) | set(st1["interpolated_frame_indices"])
+    rev = [i for i in range(60) if i not in skip]
+    T, al = align_trajectory(e1[rev], gt[rev], with_scale=False)
+    rmse1 = float(np.sqrt(np.mean(np.sum((al[:, :3, 3] - gt[rev, :3, 3]) ** 2, axis=1))))
+    out = {"exit_code": code, "relocalized": m["relocalized"], "first_localized_frame": m["first_localized_frame"],
+           "entry_frame": entry, "matches": m["relocalization_matches"], "matches_used": m["matches_used"],
+           "query_ms_mean": m["relocalization_query_ms_mean"], "session1_rmse_m": rmse1}
+    if m["relocalized"]:
+        e2 = read_kitti_poses(work / "r2.txt")
+        f0 = m["first_localized_frame"]
+        truth = gt[190 + f0: 190 + f0 + len(e2), :3, 3]
+        p = e2[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+        path = float(np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1)))
+        out.update({"session2_rmse_m": float(np.sqrt(np.mean(np.sum((p - truth) ** 2, axis=1)))),
+                    "session2_path_m": path, "scale_map_per_session": sim3.scale(np.array(m["S_map_world"]))})
+    other = work / "other150"
+    if not (other / "poses" / "00.txt").is_file():
+        generate_sequence(other, 150, seed=5, size=(620, 188), path="loop")
+    run(other, work / "o1.txt", "--save-map", str(work / "o_map"))
+    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"))
+    out["foreign_map"] = {"exit_code": code_o, "relocalized": st_o["map"]["relocalized"],
+                          "matches": st_o["map"]["relocalization_matches"]}
+    return out
+
+
+def kitti06(work: Path, starts: tuple[int, ...] = (10, 20)) -> dict | None:
+    """Session 1 on all 51 frames saves; session 2 on frames ``start``-50 of each start."""
+    if not KITTI06.is_dir():
+        return None
+    run(KITTI06, work / "k1.txt", "--save-map", str(work / "k_map"))
+    e1 = read_kitti_poses(work / "k1.txt")
+    out = {}
+    for start in starts:
+        k2 = cut(KITTI06, work / f"k2_{start}", start, 51, KITTI06_POSES)
+        code, st2 = run(k2, work / f"k2_{start}.txt", "--map", str(work / "k_map"))
+        m = st2["map"]
+        r = {"frames": 51 - start, "exit_code": code, "relocalized": m["relocalized"],
+             "first_localized_frame": m["first_localized_frame"], "matches": m["relocalization_matches"],
+             "matches_used": m["matches_used"], "query_ms_mean": m["relocalization_query_ms_mean"]}
+        if m["relocalized"]:
+            e2 = read_kitti_poses(work / f"k2_{start}.txt")
+            f0 = m["first_localized_frame"]
+            ref = e1[start + f0: start + f0 + len(e2), :3, 3]
+            d = np.linalg.norm(e2[:, :3, 3] - ref, axis=1)
+            path = float(np.sum(np.linalg.norm(np.diff(ref, axis=0), axis=1)))
+            r.update({"localized_frames": len(e2), "vs_session1_mean_m": float(d.mean()),
+                      "vs_session1_max_m": float(d.max()), "stretch_path_m": path,
+                      "vs_session1_max_pct_of_path": 100 * float(d.max()) / path,
+                      "scale_map_per_session": sim3.scale(np.array(m["S_map_world"]))})
+        out[f"frames_{start}_50"] = r
+    return out
+
+
+def _table(d: dict) -> list[str]:
+    cols = list(d)
+    keys = list(dict.fromkeys(k for c in cols for k in d[c]))
+
+    def fmt(v):
+        return f"{v:.3f}" if isinstance(v, float) else str(v)
+    return (["| | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
+            + [f"| {k} | " + " | ".join(fmt(d[c].get(k, "")) for c in cols) + " |" for k in keys])
+
+
+def render(r: dict, command: str, machine: str) -> str:
+    io, rv, k = r["io"], r["rendered"], r["kitti06"]
+    lines = ["# Saved maps: size, save/load time, relocalization", "",
+             f"Command: `{command}`  ", f"Machine: {machine}. Other jobs (depth-network training, "
+             "test runs) shared the 2 CPU cores, so the times are pessimistic.", "",
+             "## Size and I/O per 1,000 keyframes", "",
+             f"{io['keyframes']} keyframes ({io['bow_rows']} loop-database rows, {io['features']} features): "
+             f"**{io['mb']:.1f} MB**, save **{io['save_s_median']:.2f} s**, load **{io['load_s_median']:.2f} s** "
+             f"(median of {io['repeats']}; checksums included).", "",
+             "## Rendered revisit (session 2 starts outside the map)", "",
+             "| | value |", "| --- | --- |"]
+    lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in rv.items()]
+    lines += ["", "## KITTI odometry 06 (session 1: all 51 frames; session 2: frames START-50 of the same "
+              "drive, renumbered; its map-frame positions against session 1's, no alignment)", ""]
+    if k is None:
+        lines.append("KITTI 06 not found; skipped.")
+    else:
+        lines += _table(k)
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", default=None, help="scratch folder (default: a temporary one)")
+    ap.add_argument("--out", default=None, help="results path stem (writes .json and .md)")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args(argv)
+    work = Path(args.work or tempfile.mkdtemp(prefix="maps_bench_"))
+    work.mkdir(parents=True, exist_ok=True)
+    result = {"rendered": rendered_revisit(work)}
+    result["io"] = size_and_io(work / "r_map", work, args.repeats)
+    result["kitti06"] = kitti06(work)
+    publish(args.out, result, command_line("bench.maps", argv), render)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
