@@ -36,7 +36,7 @@ install-dev: $(VENV)/.installed-dev
 
 # Guards (STYLE.md habit 18): ruff's rule set and the import-layer contracts, both in
 # pyproject.toml; zero findings, nothing excluded.
-LINT_PATHS := shared services training bench tests
+LINT_PATHS := shared cli services training bench tests
 
 lint: install-dev
 	$(BIN)/ruff check $(LINT_PATHS)

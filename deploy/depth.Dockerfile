@@ -12,6 +12,7 @@ WORKDIR /app
 
 COPY pyproject.toml README.md ./
 COPY shared/ shared/
+COPY cli/ cli/
 COPY services/ services/
 COPY training/metricslam_train/__init__.py training/metricslam_train/__init__.py
 RUN pip install ".[depth-service]" && useradd --system --uid 10001 metricslam

@@ -93,6 +93,8 @@ def test_builds_and_copy_sources_exist(compose: dict, repo_root: Path) -> None:
         assert sources, f"{dockerfile} copies nothing"
         for src in sources:
             assert (context / src).exists(), f"{dockerfile.name}: COPY source {src} missing"
+        # the entry point is the `metricslam` console script: the image must hold its package's folder
+        assert "cli/" in sources, f"{dockerfile.name} does not copy cli/ (metricslam_cli)"
     for service in compose["services"].values():
         for volume in service.get("volumes", []):
             host = volume.split(":")[0]

@@ -50,6 +50,14 @@ def test_import_contracts_cover_the_whole_core_without_exceptions(repo_root):
     assert importlib.util.find_spec("metricslam.cli") is None
 
 
+def test_shared_holds_only_the_core(repo_root):
+    """``shared/`` is the core and nothing else; the command line, which imports services and
+    training, is the top floor in ``cli/`` (docs/architecture.md), so the folder names tell the layering."""
+    packages = sorted(p.name for p in (repo_root / "shared").iterdir() if (p / "__init__.py").is_file())
+    assert packages == ["metricslam"]
+    assert (repo_root / "cli" / "metricslam_cli" / "main.py").is_file()
+
+
 #: import names of everything the extras add; a bare `pip install metricslam` has none of them
 EXTRAS_ONLY = ("fastapi", "starlette", "uvicorn", "python_multipart", "multipart", "prometheus_client",
                "pydantic_settings", "zenoh", "httpx", "numba", "skimage", "matplotlib", "torch", "onnx",

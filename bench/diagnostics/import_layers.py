@@ -1,15 +1,16 @@
 """The import graph between the floors of the code base, as a Mermaid diagram for ``docs/architecture.md``.
 
-Floors, bottom to top (:data:`FLOORS`): **core** (``metricslam``), **services**
-(``metricslam_slam``, ``metricslam_depth``) and **training** (``metricslam_train``) side by side,
-the **cli** (``metricslam_cli``), and **bench**. An import may only point down a floor: never up,
+Floors, bottom to top (:data:`FLOORS`, folders :data:`FOLDERS`): **core** (``metricslam`` in
+``shared/``), **services** (``metricslam_slam``, ``metricslam_depth`` in ``services/``) and
+**training** (``metricslam_train`` in ``training/``) side by side, the **cli** (``metricslam_cli``
+in ``cli/``), and **bench**. An import may only point down a floor: never up,
 never sideways between services and training. The graph is the static one that import-linter
 checks (grimp parses every module, so lazy imports inside functions count too); each arrow of
 the diagram stands for at least one module of the upper floor importing one of the lower floor,
 and the table under it lists the frameworks each floor imports.
 
 The script rewrites the block between the markers of ``docs/architecture.md``, and fails (exit 1)
-when an import points up or sideways. ``--check`` writes nothing and also fails when the committed
+when an import points up or sideways or a package lies outside its floor's folder. ``--check`` writes nothing and also fails when the committed
 block differs from what the code gives. Run from the repository root::
 
     .venv/bin/python -m bench.diagnostics.import_layers          # regenerate the diagram
@@ -40,6 +41,9 @@ FLOORS: tuple[tuple[str, int, tuple[str, ...]], ...] = (
     ("training", 1, ("metricslam_train",)),
     ("core", 0, ("metricslam",)),
 )
+#: the top-level folder of each floor: a package outside its floor's folder fails too, so the folder
+#: names can be trusted (``shared/`` is the core and nothing else)
+FOLDERS = {"bench": "bench", "cli": "cli", "services": "services", "training": "training", "core": "shared"}
 #: third-party frameworks worth seeing per floor (the core must stay free of the web and torch ones;
 #: numba, skimage and matplotlib are the core's optional synth and plots extras)
 FRAMEWORKS = ("numpy", "gtsam", "cv2", "onnxruntime", "zenoh", "fastapi", "uvicorn", "httpx", "torch", "onnx", "rerun",
@@ -86,6 +90,20 @@ def violations(edges: dict[tuple[str, str], tuple[str, str]]) -> list[str]:
     return [f"{a} -> {b}: {m} imports {i}" for (a, b), (m, i) in sorted(edges.items()) if level[a] <= level[b]]
 
 
+def misplaced() -> list[str]:
+    """Packages of a floor that live outside the floor's folder (of this checkout)."""
+    bad = []
+    for name, _, prefixes in FLOORS:
+        for package in prefixes:
+            spec = importlib.util.find_spec(package)
+            if spec is None or not spec.submodule_search_locations:
+                continue
+            where = Path(list(spec.submodule_search_locations)[0]).resolve()
+            if not where.is_relative_to(ROOT / FOLDERS[name]):
+                bad.append(f"{package} ({name}) is in {where}, not under {FOLDERS[name]}/")
+    return bad
+
+
 def render(edges, packages, frameworks) -> str:
     def label(name: str) -> str:
         pkgs = sorted(packages.get(name, ()))
@@ -96,10 +114,12 @@ def render(edges, packages, frameworks) -> str:
     lines = ["```mermaid", "flowchart TB"]
     lines += [f'  {name}["{label(name)}"]' for name, _, _ in FLOORS if name in packages]
     lines += [f"  {a} --> {b}" for a, b in sorted(edges)]
-    lines += ["```", "", "| floor | level | imports floors | frameworks it imports |", "| --- | --- | --- | --- |"]
+    lines += ["```", "", "| floor | folder | level | imports floors | frameworks it imports |",
+              "| --- | --- | --- | --- | --- |"]
     for name, lvl, _ in FLOORS:
         down = sorted(b for a, b in edges if a == name)
-        lines.append(f"| {name} | {lvl} | {', '.join(down) or '—'} | {', '.join(sorted(frameworks.get(name, ()))) or '—'} |")
+        lines.append(f"| {name} | `{FOLDERS[name]}/` | {lvl} | {', '.join(down) or '—'} | "
+                     f"{', '.join(sorted(frameworks.get(name, ()))) or '—'} |")
     return "\n".join(lines)
 
 
@@ -118,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     bad = violations(edges)
     for line in bad:
         print(f"upward or sideways import: {line}", file=sys.stderr)
+    wrong_folder = misplaced()
+    for line in wrong_folder:
+        print(f"package outside its floor's folder: {line}", file=sys.stderr)
     new = splice(DOC.read_text(), render(edges, packages, frameworks))
     if args.check:
         if new != DOC.read_text():
@@ -126,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     elif new != DOC.read_text():
         DOC.write_text(new)
         print(f"wrote {DOC.relative_to(ROOT)}")
-    return 1 if bad else 0
+    return 1 if bad or wrong_folder else 0
 
 
 if __name__ == "__main__":
