@@ -121,19 +121,32 @@ def run(args: argparse.Namespace) -> int:
 
 def _record(recorder, n_frames: int | None, timeout_s: float | None) -> bool:
     """Wait for ``n_frames`` poses (None: until Ctrl-C) or ``timeout_s`` (None: the default with
-    ``n_frames``, no limit without). True if Ctrl-C ended it (then the poses so far are kept)."""
+    ``n_frames``, no limit without). True if Ctrl-C ended it (then the poses so far are kept).
+
+    Ctrl-C sets a flag (a SIGINT handler) instead of raising KeyboardInterrupt wherever the main
+    thread happens to be (inside a zenoh call or a lock), so stopping is always clean and prompt.
+    """
+    import signal
+    import threading
     import time
 
     if timeout_s is None and n_frames is not None:
         timeout_s = DEFAULT_TIMEOUT_S
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
-    done = (lambda r: False) if n_frames is None else (lambda r: len(r.poses) >= n_frames)
+    stop = threading.Event()
+
+    def finished(r) -> bool:
+        return stop.is_set() or (n_frames is not None and len(r.poses) >= n_frames)
+
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         while deadline is None or time.monotonic() < deadline:
             left = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
-            if recorder.wait_for(done, max(left, 0.0)):
-                return False
-    except KeyboardInterrupt:
+            if recorder.wait_for(finished, max(left, 0.0)):
+                break
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if stop.is_set():
         print("stopped (Ctrl-C); writing what arrived", flush=True)
         return True
     return False
