@@ -138,14 +138,20 @@ def _record(recorder, n_frames: int | None, timeout_s: float | None) -> bool:
     def finished(r) -> bool:
         return stop.is_set() or (n_frames is not None and len(r.poses) >= n_frames)
 
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    # only the main thread may install a handler (a caller running the CLI in a thread keeps
+    # Python's default: KeyboardInterrupt)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if main_thread else None
     try:
         while deadline is None or time.monotonic() < deadline:
             left = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
             if recorder.wait_for(finished, max(left, 0.0)):
                 break
+    except KeyboardInterrupt:
+        stop.set()
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
     if stop.is_set():
         print("stopped (Ctrl-C); writing what arrived", flush=True)
         return True
