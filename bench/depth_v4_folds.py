@@ -202,7 +202,7 @@ def decision_line(report: dict) -> str:
             + ", ".join(f"{s}: {w['worst_pct']:.1f} %" for s, w in dec["worst_by_step"].items())
             + "); seed spread at that step: "
             + ", ".join(f"{f} {p:.1f} points ({dec['seeds_per_fold'][f]} seeds)" for f, p in dec["spread_points"].items())
-            + f"; ships: **{dec['ship']}**; worst fold {dec['candidate_worst_pct']:.1f} % against the default's "
+            + f"; the candidate's form: **{dec['ship']}**; its worst fold {dec['candidate_worst_pct']:.1f} % against the default's "
             f"{dec['default_worst_pct']:.1f} % on the same folds: "
             + ("replaces the default." if dec["replaces_default"] else "does NOT replace the default."))
 
