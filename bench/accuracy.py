@@ -88,7 +88,7 @@ def run_slam(name: str, seq_dir: str, no_scale: bool, workdir: Path, repeat: int
     out = {"command": _shown(cmd), "est": str(est), "stats_json": str(stats)}
     if proc.returncode != 0:
         out["error"] = (proc.stderr or proc.stdout)[-600:].strip()
-    else:  # the per-keyframe scale history stays in the kept stats file (bench/plots.py reads it)
+    else:  # the per-keyframe scale history stays in the kept stats file (the retired bench/plots.py read it: docs/history/bench_retired.md)
         out["stats"] = {k: v for k, v in json.loads(stats.read_text()).items()
                         if k not in ("scale_history", "scale_corrections")}
     return out

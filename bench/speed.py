@@ -9,8 +9,8 @@ Runs ``metricslam run SEQ --json STATS`` once per mode (``metric`` = learned sca
 * ``os.wait4`` resource usage of the child: peak resident memory (``ru_maxrss``) and CPU seconds
   (user + system, all threads), which are less disturbed by other jobs than wall time.
 
-Global solve time vs graph size is measured separately by ``bench/graph_scaling.py``
-(``bench/results/graph_scaling.md``).
+Global solve time vs graph size was measured by the retired ``bench/graph_scaling.py``
+(``bench/results/graph_scaling.md``; ``docs/history/bench_retired.md``).
 
 Example::
 

@@ -7,9 +7,9 @@ before the kill and after the restart, and the new segment starts at the last pe
 ``up`` is run as the README recipe runs it, without ``SLAM_STATE_DIR``: it gives the SLAM service
 a temporary state directory of its own (before, a restarted SLAM service started the camera over
 at the origin and ``…/trajectory`` forgot everything from before the kill).
-Transport-only sessions (``--session identity --no-scale``) keep it fast; ``bench/stack_faults.py``
-measures the real stack, every child and SIGSTOP too. Ports are free ephemeral ones, never the
-defaults.
+Transport-only sessions (``--session identity --no-scale``) keep it fast; the real stack, every
+child and SIGSTOP too, was measured by the retired ``bench/stack_faults.py``
+(``bench/results/stack_faults.md``). Ports are free ephemeral ones, never the defaults.
 """
 
 from __future__ import annotations

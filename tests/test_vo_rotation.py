@@ -1,7 +1,8 @@
 """Rotation accuracy of the VO geometry on a KITTI-01-like turn (off-centre principal point).
 
 The KITTI 01 extract turns 98° in 50 frames and the VO rotates ~0.7 % less than the ground truth;
-so do an essential-matrix and a stereo-PnP reference (``bench/diagnostics/vo_rotation_diag.py``). These
+so do an essential-matrix and a stereo-PnP reference (``bench/results/vo_rotation.md``, by the
+retired ``bench/diagnostics/vo_rotation_diag.py``). These
 tests pin down that the VO's own geometry is not the cause: with KITTI 01's intrinsics
 (``cx`` 13 px and ``cy`` 2 px off the image centre) the window BA, the motion-only pose and
 the initializer recover a 2.6°-per-keyframe turn exactly without noise and without a yaw-rate

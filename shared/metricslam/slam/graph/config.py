@@ -81,7 +81,7 @@ class GraphConfig(BaseModel):
         odom_sigma_log_scale: odometry log-scale sigma per keyframe step: the monocular VO's
             scale drift as a random walk. 0.006 = measured on a validation drive (synthetic,
             KITTI 05's path, seed 505: variance of the log local scale grows 3.8e-5 per
-            keyframe; 0.0066 on the 2 km drive along KITTI 00), ``bench/scale_noise.py``.
+            keyframe; 0.0066 on the 2 km drive along KITTI 00), ``bench/results/scale_noise.md``.
             The former 0.03 let the trajectory's scale follow the network keyframe by keyframe.
         scale_sigma_log: sigma of one landmark's log-scale measurement ``log(ξ_j / z_j)``.
         scale_sigma_floor_log: floor of a keyframe's summarized scale-factor sigma
@@ -90,7 +90,7 @@ class GraphConfig(BaseModel):
             image along the road: on the validation drive the per-image log error has sd 0.053-0.059
             and an integrated correlation length of 11-14 keyframes (26-33 frames), so N
             keyframes carry about N/14 independent measurements. Each keyframe's factor gets
-            0.059·√14 ≈ 0.2 (``bench/scale_noise.py``); with 0.006 per-step drift the
+            0.059·√14 ≈ 0.2 (``bench/results/scale_noise.md``); with 0.006 per-step drift the
             trajectory's scale averages the network over ~1,000 keyframes instead of ~4.
         scale_huber_k: Huber threshold ε_s on the whitened scale residual.
         scale_factor_mode: "per_keyframe" (one factor at the keyframe's Huber M-estimate, default)
