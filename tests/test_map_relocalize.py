@@ -24,7 +24,7 @@ import json
 
 import numpy as np
 import pytest
-from map_sequences import cut_sequence
+from bench.maps import cut as cut_sequence
 from metricslam.geometry import sim3
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses
