@@ -3,6 +3,7 @@
 
 Covers: every documented status code, JSON vs ``.npy`` agreement, batch, readiness, Prometheus
 counters, admission control (429 / 503 with Retry-After), and the image header sniffing.
+Validity flags (``valid: false``) and ``Accept`` / 406: ``tests/test_depth_service_validity.py``.
 """
 
 from __future__ import annotations
@@ -393,50 +394,3 @@ def test_settings_come_from_environment_and_refuse_bad_values(monkeypatch):
     monkeypatch.setenv("DEPTH_MAX_QUEUE", "lots")
     with pytest.raises(ConfigError, match="DEPTH_MAX_QUEUE"):
         load_settings()
-
-
-# ----- validity of the answer, content negotiation -----
-
-@pytest.mark.parametrize("pixels", [np.zeros((370, 1226), np.uint8), np.full((370, 1226), 200, np.uint8)],
-                         ids=["black", "uniform"])
-def test_flat_image_is_answered_but_flagged_invalid(client, pixels):
-    """A blank or uniform image gets the network's output, but flagged: no confident map."""
-    r = _post(client, _png(pixels))
-    assert r.status_code == 200, r.text
-    body = r.json()
-    assert body["valid"] is False and "flat image" in body["invalid_reason"]
-    npy = _post(client, _png(pixels), headers={"Accept": "application/x-npy"})
-    assert npy.headers["x-valid"] == "0"
-    ok = _post(client, PNG).json()
-    assert ok["valid"] is True and ok["invalid_reason"] is None
-    assert _post(client, PNG, headers={"Accept": "application/x-npy"}).headers["x-valid"] == "1"
-
-
-def test_batch_flags_each_image(client):
-    files = [("images", ("a.png", PNG, "image/png")), ("images", ("b.png", _png(np.zeros((370, 1226), np.uint8)),
-                                                                   "image/png"))]
-    r = client.post("/v1/disparity/batch", params={"fx": FX_PX}, files=files)
-    assert r.status_code == 200, r.text
-    assert [res["valid"] for res in r.json()["results"]] == [True, False]
-    r = client.post("/v1/disparity/batch", params={"fx": FX_PX}, files=files,
-                    headers={"Accept": "application/x-npy"})
-    assert r.headers["x-valid"] == "1,0"
-
-
-@pytest.mark.parametrize("accept", ["text/html", "text/html, application/xhtml+xml", "application/json;q=0, text/plain"])
-def test_accept_without_json_or_npy_is_406(client, accept):
-    body = _assert_problem(_post(client, PNG, headers={"Accept": accept}), 406, "not-acceptable")
-    assert "application/json" in body["detail"]
-    files = [("images", ("a.png", PNG, "image/png"))]
-    r = client.post("/v1/disparity/batch", params={"fx": FX_PX}, files=files, headers={"Accept": accept})
-    _assert_problem(r, 406, "not-acceptable")
-
-
-@pytest.mark.parametrize(("accept", "media"), [
-    ("*/*", "application/json"), ("application/*", "application/json"),
-    ("text/html,application/xhtml+xml,application/xml;q=0.9,*/*;q=0.8", "application/json"),  # a browser's
-    ("application/x-npy", "application/x-npy"), ("application/x-npy;q=0, application/json", "application/json"),
-])
-def test_accept_ranges_that_admit_an_answer(client, accept, media):
-    r = _post(client, PNG, headers={"Accept": accept})
-    assert r.status_code == 200 and r.headers["content-type"] == media

@@ -238,22 +238,31 @@ class CameraWorker:
 
     def _fresh_session(self, camera: PinholeCamera, reason: str) -> None:
         """Replace the running session by a fresh one at the origin (nothing continued)."""
+        def fresh(earlier: list[PoseEstimate]) -> SlamSession:
+            self._forget()
+            # a new trajectory, not a correction of the old one: the continuous stream starts over
+            # at the origin instead of blending back to it
+            self._odometry = OdometryStream(self.camera_id, self._publish)
+            self._camera = camera
+            return self._start_session(camera, [])
+
+        earlier = self._replace_session(fresh, "start a new one")
+        self._announce_new_session(reason, earlier)
+
+    def _replace_session(self, start: Callable[[list[PoseEstimate]], SlamSession], why: str) -> list[PoseEstimate]:
+        """Close the running session, start ``start(its final trajectory)`` in its place under the
+        session lock, free the old one's memory; returns that final trajectory."""
         with self._session_lock:
             old = self._session
             try:
                 old.close()
             except Exception:  # noqa: BLE001 -- the camera goes on in a new session regardless
-                log.exception("camera %s: closing the session to start a new one failed", self.camera_id)
+                log.exception("camera %s: closing the session to %s failed", self.camera_id, why)
             earlier = old.trajectory()
-            self._forget()
-            # a new trajectory, not a correction of the old one: the continuous stream starts over
-            # at the origin instead of blending back to it
-            self._odometry = OdometryStream(self.camera_id, self._publish)
-            self._session = self._start_session(camera, [])
-            self._camera = camera
+            self._session = start(earlier)
         del old
         release_memory()
-        self._announce_new_session(reason, earlier)
+        return earlier
 
     def _forget(self) -> None:
         if self._forget_prior is not None:
@@ -281,16 +290,7 @@ class CameraWorker:
 
     def _roll_over(self) -> None:
         """Close the session (its final trajectory is kept) and continue in a new one."""
-        with self._session_lock:
-            old = self._session
-            try:
-                old.close()
-            except Exception:  # noqa: BLE001 -- the camera goes on in a new session regardless
-                log.exception("camera %s: closing the session to roll over failed", self.camera_id)
-            prior = old.trajectory()
-            self._session = self._start_session(self._camera, prior)
-        del old
-        release_memory()
+        prior = self._replace_session(lambda earlier: self._start_session(self._camera, earlier), "roll over")
         self._event("session_rolled_over", f"{self._max_session_keyframes} keyframes in one session; continuing "
                     f"from frame {prior[-1].frame_index if prior else '-'} as segment "
                     f"{getattr(self._session, 'first_segment_id', 0)}")
