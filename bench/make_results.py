@@ -222,13 +222,15 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
-    folds = _load("depth_v4_folds.json")
-    if folds:
-        from bench.depth_v4_folds import FOLD_SCORE_TEXT, decision_line, fold_table
+    for recipe, what in (("v4", "every real drive"), ("v5", "every real drive and the six rendered streets")):
+        folds = _load(f"depth_{recipe}_folds.json")
+        if folds:
+            from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
 
-        page += ["## Depth v4: leave-one-drive-out folds, three seeds and their ensemble (issue #31)", "",
-                 "Rule committed before any v4 number: `docs/history/rule_depth_v4.md`. " + FOLD_SCORE_TEXT, "",
-                 fold_table(folds), "", decision_line(folds), "", _src("depth_v4_folds.json", folds), ""]
+            page += [f"## Depth {recipe} ({what}): leave-one-drive-out folds, seeds and their ensemble (issue #31)",
+                     "", f"Rule committed before any {recipe} number: `docs/history/rule_depth_{recipe}.md`. "
+                     + FOLD_SCORE_TEXT, "", fold_table(folds), "", decision_line(folds), "",
+                     _src(f"depth_{recipe}_folds.json", folds), ""]
     jumps = _load("pose_jumps.json")
     if jumps:
         page += ["## Live pose jumps vs the continuous odometry stream (issue #32)", "",

@@ -1,12 +1,13 @@
-"""Depth v4 (issue #31): leave-one-drive-out folds, seeds and their ensemble, scored and decided by
-the rule committed before any v4 number was seen (``docs/history/rule_depth_v4.md``).
+"""Depth recipes v4, v5 (issue #31): leave-one-drive-out folds, seeds and their ensemble, scored and
+decided by the rule committed before any of the recipe's numbers was seen
+(``docs/history/rule_depth_<recipe>.md``; v5's rule is v4's with ``v5_`` runs).
 
-Folds (each scored only by runs that never trained on its drive):
+Folds (each scored only by runs that never trained on its drive; ``R`` is ``--recipe``):
 
-* ``06``   — runs ``v4_all_s*`` (KITTI 06 is never trained on): ``metricslam run --deterministic``
+* ``06``   — runs ``R_all_s*`` (KITTI 06 is never trained on): ``metricslam run --deterministic``
   scale error against the KITTI poses, corner check per range bin (``bench/landmark_depth.py``);
-* ``0013`` — runs ``v4_no0013_s*``: the same against the GPS/INS poses;
-* ``1405`` — runs ``v4_no1405_s*`` on residential_1405 (no poses): ``bench/scale_measurements.py``
+* ``0013`` — runs ``R_no0013_s*``: the same against the GPS/INS poses;
+* ``1405`` — runs ``R_no1405_s*`` on residential_1405 (no poses): ``bench/scale_measurements.py``
   against the drive's own stereo; the score is |median(measured / true) − 1| in %.
 
 For every step, each finished seed is exported (EMA weights, float32) and scored, and so is the
@@ -16,8 +17,8 @@ after more runs finish only scores what is new.
 
 Example::
 
-    .venv/bin/python -m bench.depth_v4_folds --data ../shared/data --steps 2000 2500 3000 \\
-        --out bench/results/depth_v4_folds
+    .venv/bin/python -m bench.depth_folds --recipe v5 --data ../shared/data --steps 2000 2500 3000 \\
+        --out bench/results/depth_v5_folds
 """
 
 from __future__ import annotations
@@ -31,14 +32,16 @@ from pathlib import Path
 from bench.machine import command_line, describe, write_results
 from metricslam.depth import DEFAULT_MODEL_PATH
 
-#: fold name -> (run prefix, kind, sequence folder, ground truth) relative to --data
+#: the recipes with committed rules
+RECIPES = ("v4", "v5")
+#: fold name -> (run prefix after "<recipe>_", kind, sequence folder, ground truth) relative to --data
 FOLDS = {
-    "06": ("v4_all", "slam", "kitti_odometry/sequences/06", "kitti_odometry/poses/06.txt"),
-    "0013": ("v4_no0013", "slam", "kitti_raw_stereo/sequences/2011_09_26_drive_0013",
+    "06": ("all", "slam", "kitti_odometry/sequences/06", "kitti_odometry/poses/06.txt"),
+    "0013": ("no0013", "slam", "kitti_raw_stereo/sequences/2011_09_26_drive_0013",
              "kitti_raw_stereo/poses/2011_09_26_drive_0013.txt"),
-    "1405": ("v4_no1405", "stereo", "kitti_raw_stereo/sequences/2011_09_26_residential_1405", None),
+    "1405": ("no1405", "stereo", "kitti_raw_stereo/sequences/2011_09_26_residential_1405", None),
 }
-#: the rule's constants (docs/history/rule_depth_v4.md)
+#: the rules' constants (docs/history/rule_depth_v4.md, shared by v5)
 STEP_TIE_POINTS = 0.5
 SPREAD_LIMIT_POINTS = 3.0
 DEFAULT_SINGLE_SEED = 23
@@ -114,10 +117,13 @@ class Scorer:
         return self.cache[key]
 
 
-def score_folds(runs: Path, steps: list[int], seeds: list[int], scorer: Scorer, work: Path) -> dict:
+def score_folds(recipe: str, runs: Path, steps: list[int], seeds: list[int], scorer: Scorer, work: Path,
+                folds: tuple[str, ...] = tuple(FOLDS)) -> dict:
     """``{fold: {step: {"seeds": {seed: score}, "ensemble": score | None, "members": [...]}}}``."""
     out: dict = {}
-    for fold, (prefix, kind, _, _) in FOLDS.items():
+    for fold in folds:
+        run, kind, _, _ = FOLDS[fold]
+        prefix = f"{recipe}_{run}"
         out[fold] = {}
         for step in steps:
             ckpts = {str(s): runs / f"{prefix}_s{s}" / f"step_{step:06d}.pt" for s in seeds}
@@ -141,7 +147,7 @@ def _ensemble_or_only(row: dict) -> dict:
 
 
 def decide(folds: dict, default: dict) -> dict:
-    """The rule of ``docs/history/rule_depth_v4.md`` applied to the scores."""
+    """The rule of ``docs/history/rule_depth_v4.md`` (v5: the same) applied to the scores."""
     steps = sorted({step for rows in folds.values() for step in rows}, key=int)
     worst = {}
     for step in steps:
@@ -208,8 +214,9 @@ def decision_line(report: dict) -> str:
 
 
 def markdown(report: dict) -> str:
-    lines = ["# Depth v4: leave-one-drive-out folds (bench/depth_v4_folds.py)", "",
-             "Rule: docs/history/rule_depth_v4.md (committed before any v4 number).  ",
+    r = report.get("recipe", "v4")
+    lines = [f"# Depth {r}: leave-one-drive-out folds (bench/depth_folds.py)", "",
+             f"Rule: docs/history/rule_depth_{r}.md (committed before any {r} number).  ",
              f"Command: `{report['command']}`  ", f"Machine: {report['machine']}", ""]
     if report.get("note"):
         lines += [report["note"], ""]
@@ -220,21 +227,27 @@ def markdown(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
-    ap.add_argument("--runs", type=Path, default=Path("runs"), help="folder of the v4_* run folders")
-    ap.add_argument("--work", type=Path, default=Path("runs/v4_eval"), help="exported models, trajectories, cache")
+    ap.add_argument("--recipe", choices=RECIPES, required=True, help="which recipe's runs and rule")
+    ap.add_argument("--runs", type=Path, default=Path("runs"), help="folder of the <recipe>_* run folders")
+    ap.add_argument("--work", type=Path, default=None, help="exported models, trajectories, cache "
+                    "(default: runs/<recipe>_eval)")
+    ap.add_argument("--folds", nargs="+", choices=tuple(FOLDS), default=list(FOLDS),
+                    help="score only these folds (a fold left out is reported as not measured)")
     ap.add_argument("--steps", type=int, nargs="+", default=[2000, 2500, 3000])
     ap.add_argument("--seeds", type=int, nargs="+", default=[23, 24, 25])
     ap.add_argument("--baseline", type=Path, default=DEFAULT_MODEL_PATH,
-                    help="the model a candidate must beat (default: the shipped default; once v4 ships, a copy "
-                         "of the model it replaced)")
+                    help="the model a candidate must beat (default: the shipped default; once a recipe ships, a "
+                         "copy of the model it replaced)")
     ap.add_argument("--note", default="")
     ap.add_argument("--out", type=Path, required=True, help="results path without extension (.json and .md)")
     args = ap.parse_args(argv)
+    args.work = args.work or Path("runs") / f"{args.recipe}_eval"
     args.work.mkdir(parents=True, exist_ok=True)
     scorer = Scorer(args.data, args.work)
     default = {f: scorer(args.baseline, f, corners=FOLDS[f][1] == "slam") for f in FOLDS}
-    folds = score_folds(args.runs, args.steps, args.seeds, scorer, args.work)
-    report = {"command": command_line("bench.depth_v4_folds"), "machine": describe(), "note": args.note,
+    folds = score_folds(args.recipe, args.runs, args.steps, args.seeds, scorer, args.work, tuple(args.folds))
+    report = {"command": command_line("bench.depth_folds"), "machine": describe(), "note": args.note,
+              "recipe": args.recipe,
               "seeds": [str(s) for s in args.seeds],
               "default_model": args.baseline.name, "default": default, "folds": folds,
               "decision": decide(folds, default)}
