@@ -2,7 +2,8 @@
 ``metricslam depth-service`` child process on 127.0.0.1:18106) and spoken to over HTTP with httpx.
 
 Covers: flat / empty images answered but flagged ``valid: false`` (JSON and ``X-Valid``, single
-and batch), and ``Accept`` negotiation (406 when neither JSON nor ``.npy`` is acceptable).
+and batch), ``Accept`` negotiation (406 when neither JSON nor ``.npy`` is acceptable), and the SLAM
+side's depth sources refusing flat keyframes (no scale factor from a flagged map).
 Request helpers are shared with ``tests/test_depth_service.py``.
 """
 
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from tests.depth_service_process import ServiceProcess
-from tests.test_depth_service import FX_PX, PNG, SMALL_BODY_LIMIT, _assert_problem, _png, _post
+from tests.test_depth_service import FX_PX, IMG, PNG, SMALL_BODY_LIMIT, _assert_problem, _png, _post
 
 PORT_VALIDITY = 18106
 
@@ -75,3 +76,32 @@ def test_accept_without_json_or_npy_is_406(client, accept):
 def test_accept_ranges_that_admit_an_answer(client, accept, media):
     r = _post(client, PNG, headers={"Accept": accept})
     assert r.status_code == 200 and r.headers["content-type"] == media
+
+
+# ----- the SLAM side never turns a flagged map into a scale factor -----
+
+def test_slam_depth_sources_refuse_flat_images(client):
+    """A flat keyframe gets no learned scale, whether depth comes from the service (its
+    ``X-Valid: 0`` answer) or from the in-process model (the same check); a real view still works."""
+    from metricslam.camera import PinholeCamera
+    from metricslam.depth import DEFAULT_MODEL_PATH
+    from metricslam.errors import DepthSourceError
+    from metricslam.slam.depth_source import OnnxDepthSource
+    from metricslam_slam.service.http_depth import HttpDepthSource
+
+    camera = PinholeCamera(fx_px=FX_PX, fy_px=FX_PX, cx_px=612.5, cy_px=184.5, width_px=1226, height_px=370)
+    flat = np.full((370, 1226), 17, np.uint8)
+    real = IMG
+    http = HttpDepthSource(str(client.base_url), retries=0)
+    try:
+        with pytest.raises(DepthSourceError, match="flagged its image invalid"):
+            http.inv_depth_map(flat, camera)
+        assert http.requests_invalid == 1 and http.reachable is True and http.requests_ok == 0
+        assert np.isfinite(http.inv_depth_map(real, camera)).any() and http.requests_ok == 1
+    finally:
+        http.close()
+    local = OnnxDepthSource(DEFAULT_MODEL_PATH)
+    with pytest.raises(DepthSourceError, match="flat image"):
+        local.inv_depth_map(flat, camera)
+    assert np.isfinite(local.inv_depth_map(real, camera)).any()
+

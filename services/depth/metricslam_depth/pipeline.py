@@ -30,6 +30,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.depth import DepthModel
+from metricslam.depth.validity import flat_image_reason
 from metricslam.disparity import inv_depth_from_width_fraction
 from metricslam.errors import ImageError
 
@@ -39,25 +40,6 @@ from .imaging import decode_gray, read_header
 from .intrinsics import CameraQuery, decoded_camera
 from .metrics import ServiceMetrics
 from .schemas import BatchResponse, DisparityResponse, DisparityResult
-
-#: an image whose gray levels (0-255) have a standard deviation below this is flat: no contrast to
-#: read depth from (sensor noise on a uniform scene is ~1-2 levels; any real view has tens)
-FLAT_STD_LEVELS = 2.0
-
-
-def flat_image_reason(gray: np.ndarray) -> str | None:
-    """Why the decoded ``(H, W)`` uint8 gray image is too flat for a depth map, or None.
-
-    Example::
-
-        >>> flat_image_reason(np.full((8, 8), 128, np.uint8))
-        'flat image: gray-level standard deviation 0.00 < 2 (blank, covered or uniform view)'
-    """
-    std = float(np.std(gray, dtype=np.float64))
-    if std < FLAT_STD_LEVELS:
-        return (f"flat image: gray-level standard deviation {std:.2f} < {FLAT_STD_LEVELS:g} "
-                "(blank, covered or uniform view)")
-    return None
 
 
 @dataclass(frozen=True)

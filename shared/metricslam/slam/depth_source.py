@@ -77,6 +77,19 @@ class OnnxDepthSource:
         return self._model
 
     def inv_depth_map(self, image: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+        """Metric inverse depth (h, w) float32 in 1/m for ``image`` taken with ``camera``.
+
+        Raises:
+            DepthSourceError: the model failed, or the image is flat (no contrast: blank, dark,
+                covered lens) so its map would be a confident-looking guess — the depth service
+                flags the same images ``valid: false`` (:mod:`metricslam.depth.validity`).
+        """
+        from metricslam.depth.model import to_gray_u8
+        from metricslam.depth.validity import flat_image_reason
+
+        reason = flat_image_reason(to_gray_u8(image))
+        if reason is not None:
+            raise DepthSourceError(f"no learned scale from this keyframe: {reason}")
         with self._lock:
             try:
                 model = self._load()

@@ -12,7 +12,9 @@ It ``POST``s it to
 and returns the service's metric inverse depth (h, w) float32 (1/m) for that camera, covering the
 whole image; NaN in cells outside a canonical-camera (contract version 2) model's field of view. Connection failures, timeouts and 5xx/429 are
 retried a bounded number of times with a short backoff, then :class:`DepthSourceError` is raised —
-the global back end treats that as "no scale factor for this keyframe" and tracking goes on.
+the global back end treats that as "no scale factor for this keyframe" and tracking goes on. So is
+an answer the service flags ``valid: false`` (``X-Valid: 0``: a flat image, no depth to read;
+counted in ``requests_invalid``): its plausible-looking map never becomes a scale factor.
 ``reachable`` (None until first use), ``last_error`` and ``outages`` (times it went from not
 known-bad to unreachable) say whether the service answers; the SLAM service probes once at start
 (:meth:`probe`, ``GET /readyz``), reports them on ``…/status`` and probes periodically so the
@@ -73,6 +75,7 @@ class HttpDepthSource:
         self._last_error: str | None = None
         self.requests_ok = 0
         self.requests_failed = 0
+        self.requests_invalid = 0  # answered, but flagged ``valid: false`` (X-Valid: 0)
         self.outages = 0
 
     # -- state -------------------------------------------------------------------------------
@@ -153,10 +156,14 @@ class HttpDepthSource:
                 raise DepthSourceError(f"depth service rejected the keyframe: HTTP "
                                        f"{response.status_code} {response.text[:200]}")
             inv_depth = _parse(response)
+            self._mark(True)  # it answered
+            if response.headers.get("x-valid", "1") == "0":
+                self.requests_invalid += 1
+                raise DepthSourceError("no learned scale from this keyframe: the depth service flagged "
+                                       "its image invalid (flat: blank, dark or covered lens)")
             if response.headers.get("x-model-id") != self._input_model_id:
                 self._input_size = None  # another model serves now: ask for its contract again
             self.requests_ok += 1
-            self._mark(True)
             return inv_depth
         self.requests_failed += 1
         self._mark(False, error)
