@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: install install-dev lint results test demo clean
+.PHONY: install install-dev lint results test demo clean images-smoke
 
 $(BIN)/python:
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (Python 3.11) on PATH"; exit 1; }
@@ -36,7 +36,7 @@ install-dev: $(VENV)/.installed-dev
 
 # Guards (STYLE.md habit 18): ruff's rule set and the import-layer contracts, both in
 # pyproject.toml; zero findings, nothing excluded.
-LINT_PATHS := shared cli services training bench tests
+LINT_PATHS := shared cli services training bench tests deploy
 
 lint: install-dev
 	$(BIN)/ruff check $(LINT_PATHS)
@@ -52,6 +52,15 @@ test: lint
 
 demo: install
 	$(BIN)/metricslam demo
+
+# Both container images built and started without a container engine (deploy/images_smoke.py; not
+# part of `make test`): needs root, buildah and debootstrap (apt-get install buildah debootstrap
+# podman), a KITTI odometry sequence (KITTI_SEQ) and PyPI from inside the builds; writes
+# bench/results/images_smoke.json; `make results` renders it into docs/deployment.md.
+KITTI_SEQ ?= ../shared/data/kitti_odometry/sequences/06
+SMOKE_ARGS ?=
+images-smoke: install
+	$(BIN)/python -m deploy.images_smoke $(KITTI_SEQ) $(SMOKE_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

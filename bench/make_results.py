@@ -12,11 +12,14 @@ Sources (all under ``bench/results/``):
 * ``accuracy_v4.json`` (else ``accuracy_v3.json``) — deterministic SLAM runs with the shipped model (``bench/accuracy.py``);
 * ``depth_speed_int8.json`` — the int8 network's latency (``bench/depth_speed.py``);
 * ``speed.json`` — frames/s of ``metricslam run`` (``bench/speed.py``);
-* ``depth_v3_selection.json`` — how the shipped model was chosen (``bench/select_depth.py``);
+* ``depth_v3_selection.json`` — how the v3 candidates were judged (``bench/select_depth.py``, retired: docs/history/bench_retired.md);
 * ``scale_measurements.json`` — what the scale factors consume (``bench/scale_measurements.py``);
 * ``pose_jumps.json`` — live pose jumps vs the continuous odometry stream (``bench/pose_jumps.py``);
 * ``own_rig.json``, ``own_rig_turns.json`` — one non-KITTI rig before and after fine-tuning
-  (``bench/own_rig.py``), spliced into ``docs/own_camera.md``.
+  (``bench/own_rig.py``), spliced into ``docs/own_camera.md``;
+* ``ground_scale.json``, ``speed_0013.json``, ``speed_0013_ground.json`` — ground-plane scale
+  (``bench/ground_scale.py``, ``bench/speed.py``), spliced into ``docs/ground_scale.md``
+  (``bench/results_ground.py``).
 """
 
 from __future__ import annotations
@@ -222,7 +225,8 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
-    for recipe, what in (("v4", "every real drive"), ("v5", "every real drive and the six rendered streets")):
+    for recipe, what in (("v4", "every real drive"), ("v5", "every real drive and the six rendered streets"),
+                         ("v6", "every real drive and 30 rendered streets")):
         folds = _load(f"depth_{recipe}_folds.json")
         if folds:
             from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
@@ -267,10 +271,18 @@ def main(argv: list[str] | None = None) -> int:
         outputs.append((own_path, splice(own_path.read_text(), own_rig_block(), "docs/own_camera.md")))
     if usage_path.is_file():
         outputs.append((usage_path, splice(usage_path.read_text(), live_vs_offline_block(), "docs/usage.md")))
+    ground_path = ROOT / "docs" / "ground_scale.md"
+    if ground_path.is_file():
+        from bench.results_ground import ground_scale_block
+
+        outputs.append((ground_path, splice(ground_path.read_text(), ground_scale_block(), "docs/ground_scale.md")))
     deploy_path = ROOT / "docs" / "deployment.md"
     if deploy_path.is_file():
         text = splice(deploy_path.read_text(), soak_block(), "docs/deployment.md")
-        outputs.append((deploy_path, splice(text, latency_block(), "docs/deployment.md", tag="latency")))
+        text = splice(text, latency_block(), "docs/deployment.md", tag="latency")
+        from deploy.images_smoke import images_smoke_block  # the images' smoke test renders its own block
+
+        outputs.append((deploy_path, splice(text, images_smoke_block(), "docs/deployment.md", tag="images")))
     if args.check:
         stale = [str(p.relative_to(ROOT)) for p, new in outputs if not p.is_file() or p.read_text() != new]
         if stale:

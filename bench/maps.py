@@ -11,6 +11,9 @@ latency and map-frame accuracy on a rendered revisit and on KITTI odometry 06.
   frame against ground truth rigidly aligned to session 1 over the revisited stretch (and session
   1's own RMSE there), the scale of ``S_map_world``, and a map of another world (seed 5), which
   must not relocalize.
+* **KITTI raw 0013** (issue #34's real target, :func:`kitti_raw_0013`): sessions 0-99 / 40-143,
+  overlap error against session 1 and ATE against the GPS/INS truth, a map of raw 0001 that
+  must not relocalize it (``--data``: the shared data folder).
 * **KITTI 06** (51 frames): session 1 = all frames ``--save-map``; session 2 = frames 10-50 and
   20-50 as their own folder ``--map`` (the same images from another start: a fair relocalization check,
   not a revisit). Reports the relocalized frame and, without any alignment, session 2's map-frame
@@ -178,6 +181,71 @@ def kitti06(work: Path, starts: tuple[int, ...] = (10, 20)) -> dict | None:
     return out
 
 
+def _ate_se3_m(est: np.ndarray, gt: np.ndarray) -> float:
+    """Position RMSE (m) after the best rigid (SE(3)) alignment of ``est`` to ``gt`` (N, 4, 4)."""
+    _, al = align_trajectory(est, gt, with_scale=False)
+    return float(np.sqrt(np.mean(np.sum((al[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def _run_or_refused(seq: Path, out: Path, *flags: str) -> tuple[int, dict | None]:
+    """:func:`run`, or ``(exit code, None)`` when the run refused before writing its JSON."""
+    out.with_suffix(".json").unlink(missing_ok=True)
+    code = cli(["run", str(seq), "--out", str(out), "--json", str(out.with_suffix(".json")),
+                "--deterministic", "--no-progress", *flags])
+    js = out.with_suffix(".json")
+    return code, json.loads(js.read_text()) if js.is_file() else None
+
+
+def kitti_raw_0013(work: Path, data: Path) -> dict | None:
+    """Issue #34's real revisit: KITTI raw 0013, session 1 = frames 0-99 ``--save-map``; session 2
+    = frames 40-143 (renumbered from 0) ``--map`` (and ``--save-map``: the map extended by it).
+    Session 2's map-frame positions on the overlap (frames 40-99) against session 1's, no
+    alignment, in % of the overlap's GPS/INS path; ATE SE(3) against the GPS/INS truth of session
+    2 and of a single run over 0-143 on the same frames; a map of raw 0001 must not relocalize it."""
+    src = data / "kitti_raw_stereo" / "sequences" / "2011_09_26_drive_0013"
+    poses = data / "kitti_raw_stereo" / "poses" / "2011_09_26_drive_0013.txt"
+    other = data / "kitti_raw_stereo" / "sequences" / "2011_09_26_drive_0001"
+    if not (src.is_dir() and poses.is_file()):
+        return None
+    gt = read_kitti_poses(poses)
+    s1, s2 = cut(src, work / "k13_s1", 0, 100, poses), cut(src, work / "k13_s2", 40, 144, poses)
+    kitti = ("--preset", "kitti")  # a cut folder has depth_0/ and poses/ beside its images: not a render
+    run(s1, work / "k13_s1.txt", *kitti, "--save-map", str(work / "k13_map"))
+    code, st2 = run(s2, work / "k13_s2.txt", *kitti, "--map", str(work / "k13_map"), "--save-map",
+                    str(work / "k13_map_ext"))
+    _, st_all = run(src, work / "k13_all.txt", *kitti)
+    m = st2["map"]
+    out = {"exit_code": code, "relocalized": m["relocalized"], "first_localized_frame": m["first_localized_frame"],
+           "matches": m["relocalization_matches"], "matches_used": m["matches_used"],
+           "query_ms_mean": m["relocalization_query_ms_mean"], "map_keyframes": m["map_keyframes"]}
+    if m["relocalized"]:
+        f0 = m["first_localized_frame"]
+        e1, e2, e_all = (read_kitti_poses(work / f"k13_{n}.txt") for n in ("s1", "s2", "all"))
+        frames = np.arange(40 + f0, 144)  # original frame of each line of session 2's file
+        overlap = frames[frames < 100]
+        d = np.linalg.norm(e2[:len(overlap), :3, 3] - e1[overlap, :3, 3], axis=1)
+        path = float(np.sum(np.linalg.norm(np.diff(gt[overlap, :3, 3], axis=0), axis=1)))
+        ext = st2.get("map_saved", {}).get("extended", {})
+        out.update({
+            "overlap_frames": f"{int(overlap[0])}-{int(overlap[-1])}", "overlap_path_m": path,
+            "overlap_vs_session1_rmse_m": float(np.sqrt(np.mean(d ** 2))), "overlap_vs_session1_max_m": float(d.max()),
+            "overlap_vs_session1_rmse_pct_of_path": 100 * float(np.sqrt(np.mean(d ** 2))) / path,
+            "overlap_vs_session1_max_pct_of_path": 100 * float(d.max()) / path,
+            "ate_se3_session2_m": _ate_se3_m(e2, gt[frames]), "ate_se3_single_run_same_frames_m": _ate_se3_m(e_all[frames], gt[frames]),
+            "ate_se3_single_run_0_143_m": _ate_se3_m(e_all, gt), "ate_frames": f"{int(frames[0])}-143",
+            "scale_map_per_session": sim3.scale(np.array(m["S_map_world"])),
+            "extended_map_keyframes": st2.get("map_saved", {}).get("keyframes"),
+            "extended_cross_session_factors": ext.get("cross_session_factors"),
+            "single_run_frames": st_all.get("frames")})
+    if other.is_dir():
+        run(other, work / "k01.txt", *kitti, "--save-map", str(work / "k01_map"))
+        code_o, st_o = _run_or_refused(s2, work / "k13_s2_on01.txt", *kitti, "--map", str(work / "k01_map"))
+        out["foreign_map_0001"] = {"exit_code": code_o, "refused_before_run": st_o is None,
+                                   "relocalized": bool(st_o and st_o["map"]["relocalized"]),
+                                   "matches": st_o["map"]["relocalization_matches"] if st_o else None}
+    return out
+
+
 def _table(d: dict) -> list[str]:
     cols = list(d)
     keys = list(dict.fromkeys(k for c in cols for k in d[c]))
@@ -206,6 +274,19 @@ def render(r: dict, command: str, machine: str) -> str:
         lines.append("KITTI 06 not found; skipped.")
     else:
         lines += _table(k)
+    k13 = r.get("kitti_raw_0013")
+    lines += ["", "## KITTI raw 0013 (session 1: frames 0-99 saves; session 2: frames 40-143, renumbered, "
+              "`--map` and `--save-map`; GPS/INS truth)", ""]
+    if k13 is None:
+        lines.append("KITTI raw 0013 not found under --data; skipped.")
+    else:
+        lines += ["| | value |", "| --- | --- |"]
+        lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in k13.items()]
+    live = r.get("live_0013")
+    if live is not None:
+        lines += ["", "## KITTI raw 0013 session 2 through the live stack (`up --map`, `replay --rate 10 "
+                  "--max-in-flight 3`, `poses --trajectory`; bench/maps_live.py)", "", "| | value |", "| --- | --- |"]
+        lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in live.items()]
     return "\n".join(lines) + "\n"
 
 
@@ -214,13 +295,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--out", default=None, help="results path stem (writes .json and .md)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--data", default="../shared/data", help="the shared data folder (kitti_raw_stereo/)")
+    ap.add_argument("--only", choices=("kitti_raw_0013", "live_0013"), default=None,
+                    help="run only this part and merge it into the existing --out JSON")
+    ap.add_argument("--live", action="store_true",
+                    help="also 0013 session 2 through `up --map` + `replay` + `poses --trajectory` (bench/maps_live.py)")
     args = ap.parse_args(argv)
     work = Path(args.work or tempfile.mkdtemp(prefix="maps_bench_"))
     work.mkdir(parents=True, exist_ok=True)
-    result = {"rendered": rendered_revisit(work)}
-    result["io"] = size_and_io(work / "r_map", work, args.repeats)
-    result["kitti06"] = kitti06(work)
-    publish(args.out, result, command_line("bench.maps", argv), render)
+    earlier = None
+    if args.only is not None:
+        if not args.out or not Path(f"{args.out}.json").is_file():
+            raise SystemExit("--only needs --out naming an existing result to merge into")
+        result = json.loads(Path(f"{args.out}.json").read_text())
+        result.pop("machine", None)
+        earlier = result.pop("command", None)
+    else:
+        result = {"rendered": rendered_revisit(work)}
+        result["io"] = size_and_io(work / "r_map", work, args.repeats)
+        result["kitti06"] = kitti06(work)
+    if args.only != "live_0013":
+        result["kitti_raw_0013"] = kitti_raw_0013(work, Path(args.data))
+    if args.live or args.only == "live_0013":
+        from bench.maps_live import live_0013
+
+        poses = Path(args.data) / "kitti_raw_stereo" / "poses" / "2011_09_26_drive_0013.txt"
+        result["live_0013"] = live_0013(work, work / "k13_map", work / "k13_s2", work / "k13_s1.txt",
+                                        read_kitti_poses(poses), _ate_se3_m)
+    command = command_line("bench.maps", argv)
+    if args.only is not None and earlier:
+        command = f"{earlier} && {command}"  # the other parts are the earlier command's
+    publish(args.out, result, command, render)
     return 0
 
 

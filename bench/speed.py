@@ -48,6 +48,8 @@ BACKEND_STAGES = (
     ("solve_ms_mean", "global Sim(3) solve per update, mean (ms)"),
     ("solve_ms_max", "global Sim(3) solve per update, max (ms)"),
     ("loop_ms_mean", "loop-closure check per keyframe, mean (ms)"),
+    ("ground_ms_mean", "ground-plane fit per keyframe, mean (ms; scale source ground)"),
+    ("ground_cpu_ms_mean", "ground-plane fit per keyframe, thread CPU (ms)"),
 )
 
 

@@ -4,7 +4,10 @@
 # no torch, no FastAPI, no renderer (numba, scikit-image).
 # Build from the repository root:  docker build -f deploy/slam.Dockerfile -t metricslam-slam:0.1.0 .
 # (tag with the project's version, pyproject.toml; docker-compose.yml and deploy/k8s use it)
-FROM python:3.11-slim
+# BASE_IMAGE: any image with Python 3.11 whose `python` and `pip` are on PATH (deploy/images_smoke.py
+# builds with one made from Debian packages, where registry images are out of reach)
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${BASE_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /app

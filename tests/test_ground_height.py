@@ -101,6 +101,36 @@ def test_warp_jacobian_matches_central_differences():
     np.testing.assert_allclose(uv, warp_to_prev(rays, K, T, tilt_normal(n0, p[1:]), 1.6)[0], atol=1e-9)
 
 
+def test_road_patch_warp_is_the_plane_warp_factored():
+    from metricslam.slam.ground.road_image import RoadPatch, road_region
+
+    K = np.array([[718.0, 0, 607], [0, 718, 185], [0, 0, 1]])
+    n0 = nominal_down(0.01)
+    region = road_region(K, (376, 1241), n0, 1.2, (3.0, 12.0))
+    img = np.random.default_rng(2).uniform(0, 255, (376, 1241, 3)).astype(np.float32)
+    T = np.eye(4)
+    T[:3, 3] = [0.05, -0.02, 1.1]
+    patch = RoadPatch(img, img, K, region, T, n0, min_gradient=0.0, max_pixels=500)
+    p = np.array([np.log(1.6), 0.02, -0.01])
+    u, v, Az, dc = patch.warp(p)
+    uv_ref, Az_ref, duv_ref = plane_warp(patch.rays.T, K, T, n0, p)
+    np.testing.assert_allclose(np.stack([u, v], axis=1), uv_ref, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(Az, Az_ref, rtol=1e-12)
+    Kt = K @ T[:3, 3]
+    duv = np.stack([dc * (Kt[0] - u * Kt[2]) / Az, dc * (Kt[1] - v * Kt[2]) / Az], axis=1)  # (3, 2, N)
+    np.testing.assert_allclose(duv.transpose(2, 1, 0), duv_ref, rtol=1e-9, atol=1e-9)
+
+
+def test_prepared_images_give_the_same_height_as_raw_ones():
+    scene, frames = _street(1.65, 3)
+    est = RoadHeightEstimator()
+    T_prev_cur = np.linalg.inv(frames[0].T_world_cam) @ frames[1].T_world_cam
+    raw = est.estimate(frames[0].left, frames[1].left, scene.camera.K, T_prev_cur)
+    prepared = est.estimate_prepared(est.prepare(frames[0].left), est.prepare(frames[1].left),
+                                     scene.camera.K, T_prev_cur)
+    assert raw.accepted and prepared.height == raw.height and prepared.sigma_log == raw.sigma_log
+
+
 def _keyframes(scene, Ts, images, vo_units_per_m: float):
     from metricslam.slam.types import MarginalizedKeyframe
 

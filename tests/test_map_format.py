@@ -181,7 +181,7 @@ def test_run_with_a_bad_map_fails_before_the_first_frame(tiny_sequence, tmp_path
     (tmp_path / "file").write_text("x")
     cases = [(["--map", str(tmp_path / "absent")], "does not exist"),
              (["--save-map", str(tmp_path / "file")], "is a file"),
-             (["--map", str(tmp_path / "a"), "--save-map", str(tmp_path / "b")], "not implemented yet")]
+             (["--map", str(tmp_path / "a"), "--save-map", str(tmp_path / "b")], "does not exist")]
     for flags, words in cases:
         assert main(["run", str(tiny_sequence), "--out", out, "--no-progress", "--deterministic", *flags]) == 1
         err = capsys.readouterr().err.strip()

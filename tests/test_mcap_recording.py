@@ -39,8 +39,10 @@ def _stamp(r: CdrReader) -> tuple[int, str]:
     return sec * 1_000_000_000 + nanosec, frame
 
 
-def check_layout(topics: dict[str, list], base: str) -> None:
-    """Schemas and encodings of every message; stamps and bodies of the depth maps and clouds."""
+def check_layout(topics: dict[str, list], base: str, depth_info: bool = True) -> None:
+    """Schemas and encodings of every message; stamps and bodies of the depth maps and clouds;
+    with ``depth_info`` (the recorder knows the keyframes' camera: ``run``), each depth map's
+    CameraInfo at its own resolution."""
     for msgs in topics.values():
         for log_time, publish_time, _, _, schema_encoding, message_encoding in msgs:
             assert (schema_encoding, message_encoding) == ("ros2msg", "cdr") and log_time == publish_time
@@ -48,14 +50,33 @@ def check_layout(topics: dict[str, list], base: str) -> None:
     assert names[f"{base}/pose"] == "geometry_msgs/msg/PoseStamped" and names["/tf"] == "tf2_msgs/msg/TFMessage"
     assert names[f"{base}/path"] == "nav_msgs/msg/Path"
     assert names[f"{base}/landmarks"] == "sensor_msgs/msg/PointCloud2"
-    assert names[f"{base}/keyframe/depth"] == "sensor_msgs/msg/Image"
-    for log_time, _, data, *_ in topics[f"{base}/keyframe/depth"]:
+    assert names[f"{base}/keyframe/depth/image"] == "sensor_msgs/msg/Image"
+    grids = {}
+    for log_time, _, data, *_ in topics[f"{base}/keyframe/depth/image"]:
         r = CdrReader(data)
         t_ns, _ = _stamp(r)
         h, w, encoding = r.u32(), r.u32(), r.string()
         assert t_ns == log_time and encoding == "32FC1" and r.u8() == 0 and r.u32() == 4 * w
         depth_m = np.frombuffer(r.octets(), dtype="<f4").reshape(h, w)
         assert np.nanmedian(depth_m) > 0
+        grids[t_ns] = (h, w)
+    if not depth_info:  # a live client's recording: keyframe messages carry no intrinsics
+        assert f"{base}/keyframe/depth/camera_info" not in names
+        _check_landmarks(topics, base)
+        return
+    assert names[f"{base}/keyframe/depth/camera_info"] == "sensor_msgs/msg/CameraInfo"
+    infos = {}
+    for log_time, _, data, *_ in topics[f"{base}/keyframe/depth/camera_info"]:
+        r = CdrReader(data)
+        t_ns, _ = _stamp(r)
+        assert t_ns == log_time
+        infos[t_ns] = (r.u32(), r.u32())  # the depth image's own (coarse) height and width
+    assert infos == grids  # one CameraInfo per depth image, at its resolution (the live bridge's pairing)
+    _check_landmarks(topics, base)
+
+
+def _check_landmarks(topics: dict[str, list], base: str) -> None:
+    """Stamps and layout of the landmark clouds; the map is not empty by the end."""
     widths = []
     for log_time, _, data, *_ in topics[f"{base}/landmarks"]:
         r = CdrReader(data)
@@ -89,7 +110,7 @@ def test_run_writes_an_mcap_of_a_rendered_sequence(synth_sequence, tmp_path: Pat
     assert _stamp(r)[0] == images[0][0] and r.string() == "jpeg"
     jpeg = cv2.imdecode(np.frombuffer(r.octets(), np.uint8), cv2.IMREAD_UNCHANGED)
     assert jpeg.shape[:2] == seq[0].image.shape[:2]
-    assert len(topics[f"{base}/keyframe/depth"]) >= 3
+    assert len(topics[f"{base}/keyframe/depth/image"]) >= 3
     # the last path is the final optimized trajectory, the one written to --out
     r = CdrReader(topics[f"{base}/path"][-1][2])
     assert _stamp(r)[0] == t_ns[-1]
@@ -120,7 +141,7 @@ def test_run_mcap_on_kitti_06_has_every_frames_pose(shared_data: Path, tmp_path:
     check_layout(topics, base)
     assert [m[0] for m in topics[f"{base}/pose"]] == [m[0] for m in topics["/tf"]]
     np.testing.assert_allclose([m[0] for m in topics[f"{base}/pose"]], t_ns, atol=1000)  # ns rounding
-    assert len(topics[f"{base}/keyframe/image/compressed"]) >= 3 and len(topics[f"{base}/keyframe/depth"]) >= 2
+    assert len(topics[f"{base}/keyframe/image/compressed"]) >= 3 and len(topics[f"{base}/keyframe/depth/image"]) >= 2
 
 
 def test_poses_records_a_live_mcap(synth_sequence, tmp_path: Path) -> None:
@@ -169,11 +190,11 @@ def test_poses_records_a_live_mcap(synth_sequence, tmp_path: Path) -> None:
         router.close()
     topics = read_mcap(mcap_path)
     base = "/metricslam/synth"
-    check_layout(topics, base)
+    check_layout(topics, base, depth_info=False)
     assert [m[0] for m in topics[f"{base}/pose"]] == [seq[i].t_ns for i in range(n)]
     assert len(topics[f"{base}/keyframe/image/compressed"]) >= 5
     assert f"{base}/keyframe/camera_info" not in topics  # keyframe messages carry no intrinsics
-    assert len(topics[f"{base}/path"]) >= 2 and len(topics[f"{base}/keyframe/depth"]) >= 1
+    assert len(topics[f"{base}/path"]) >= 2 and len(topics[f"{base}/keyframe/depth/image"]) >= 1
     by_leaf = defaultdict(list)
     for leaf, payload in ros_samples:
         by_leaf[leaf].append(payload)

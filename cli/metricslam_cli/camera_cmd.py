@@ -12,6 +12,11 @@ intrinsics, so the command refuses to start without them: a ``--calib`` file (di
 undone on each frame before it is published, same K; docs/calibration.md), or ``--fx`` [``--fy
 --cx --cy``], or an explicit guess ``--assume-fov DEG`` (horizontal field of view; logged as a
 warning).
+
+``--scale-sources`` / ``--mount-height`` are checked like ``run`` checks them before the device
+opens, then against the SLAM service, which owns them (:mod:`metricslam_cli.scale_check`): when
+its status shows other settings the camera stops with one error line saying how to restart the
+service.
 """
 
 from __future__ import annotations
@@ -44,7 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--cy", type=float, help="principal point y (px); default = image centre")
     p.add_argument("--max-rate", type=float, default=30.0, metavar="HZ", help="publish at most this often")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
-    add_scale_options(p)
+    add_scale_options(p, note="; the SLAM service owns it (up / slam-service): checked against "
+                              "its status, and the camera stops when the service runs otherwise")
     p.set_defaults(func=run)
     return p
 
@@ -53,12 +59,21 @@ def check_scale_flags(args: argparse.Namespace, calibration_mount_height_m: floa
     """The :class:`~metricslam.slam.system_config.SystemConfig` whose ``scale`` section the
     calibration file's ``mount_height_m`` and ``--scale-sources`` / ``--mount-height`` give,
     checked as ``run`` checks them (ConfigError before the device opens). Frames do not carry
-    them yet: give the same values to the SLAM service (``up`` / ``slam-service``)."""
+    them: the SLAM service owns them, and :func:`requested_scale` is compared with its status."""
     from metricslam.slam.config_file import load_system_config
     from metricslam.slam.system_config import LIVE_PROFILE
 
     profile, overrides = scale_flags(args, calibration_mount_height_m)
     return load_system_config(None, profile={**LIVE_PROFILE, **profile}, overrides=overrides)
+
+
+def requested_scale(args: argparse.Namespace, calibration_mount_height_m: float | None = None):
+    """The :class:`~metricslam_cli.scale_check.RequestedScale` of the flags (already checked)."""
+    from metricslam.slam.ground.config import parse_scale_sources
+    from metricslam_cli.scale_check import RequestedScale
+
+    sources = parse_scale_sources(args.scale_sources) if args.scale_sources is not None else None
+    return RequestedScale(sources, args.mount_height, calibration_mount_height_m)
 
 
 def check_intrinsics_flags(args: argparse.Namespace) -> None:
@@ -133,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         calib_height = load_calibration(args.calib).mount_height_m
     log = logging.getLogger("metricslam.camera")
     log_scale_sources(check_scale_flags(args, calib_height), log)
+    requested = requested_scale(args, calib_height)
     source = int(args.device) if args.device.isdigit() else args.device
     capture = cv2.VideoCapture(source)
     if not capture.isOpened():
@@ -142,6 +158,12 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.append(True))
     session = open_client(args.zenoh_endpoint)
     publisher = FramePublisher(session, args.camera_id, block=False)
+    check = None
+    if requested.anything:
+        from metricslam_cli.scale_check import ServiceScaleCheck
+
+        log.info("the SLAM service owns the scale settings: they are checked against its status")
+        check = ServiceScaleCheck(session, args.camera_id, requested)
     camera = maps = None
     index = 0
     t_first = time.monotonic_ns()
@@ -161,10 +183,14 @@ def run(args: argparse.Namespace) -> int:
                 gray = cv2.remap(gray, *maps, interpolation=cv2.INTER_LINEAR)
             publisher.publish(index, time.monotonic_ns() - t_first, gray, camera)
             index += 1
+            if check is not None:
+                check.poll()  # raises ConfigError when the service runs other scale settings
             rest = 1.0 / args.max_rate - (time.monotonic() - t_loop)
             if rest > 0:
                 time.sleep(rest)
     finally:
+        if check is not None:
+            check.close()
         publisher.close()
         session.close()
         capture.release()

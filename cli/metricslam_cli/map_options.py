@@ -8,45 +8,42 @@ in the map frame from the first relocalized frame on: the frames before it have 
 pose and are left out of the file (KITTI: the file's first line is frame
 ``map.first_localized_frame``; TUM: timestamps say which), counted in the summary and ``--json``.
 A ``--map`` run that never relocalizes writes an empty pose file and its ``--json``, then exits
-with a one-line error (code 1).
+with a one-line error (code 1). ``--map MAP --save-map OUT`` extends the loaded map: the session
+is joined to it in a Sim(3) graph (map keyframes fixed, relocalization matches as cross-session
+factors) and appended (:mod:`metricslam.slam.map.merge`); ``OUT`` may be ``MAP`` itself.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 
 def add_map_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-map", metavar="MAP",
                    help="after the run, write its map to the folder MAP (docs/maps.md; an existing "
-                        "map there is replaced atomically)")
+                        "map there is replaced atomically); with --map, the loaded map extended by this run")
     p.add_argument("--map", metavar="MAP",
                    help="localize in the saved map MAP: poses are written in the map frame from the "
                         "first relocalized frame on; earlier frames are left out and counted")
 
 
 class MapRun:
-    """What ``--map`` / ``--save-map`` add to one ``metricslam run`` (module docstring)."""
+    """What ``--map`` / ``--save-map`` add to one ``metricslam run`` (module docstring); the
+    logic is :mod:`metricslam.slam.map.localization`, shared with the SLAM service."""
 
     def __init__(self, args: argparse.Namespace, config, camera) -> None:
         from metricslam.depth.model import DEFAULT_MODEL_PATH
         from metricslam.errors import ConfigError, MapError
-        from metricslam.slam.map.format import depth_model_id, load_map
+        from metricslam.slam.map.format import depth_model_id
+        from metricslam.slam.map.localization import open_map
 
-        if args.map and args.save_map:
-            raise ConfigError("--map with --save-map (extending a loaded map) is not implemented yet: "
-                              "localize with --map, or build a new map with --save-map")
         if (args.map or args.save_map) and config.vo_only:
             raise ConfigError("--map / --save-map need the global graph: drop --vo-only")
         self.args, self.config, self.camera = args, config, camera
         self.model_id = depth_model_id(config.depth.model_path or DEFAULT_MODEL_PATH) if config.use_scale else None
-        self.saved = None
-        self.relocalizer = None
-        if args.map:
-            self.saved = load_map(args.map)
-            self.saved.check_fits(camera, self.model_id, args.map)
+        self.saved = open_map(args.map, camera, self.model_id) if args.map else None
+        self.localization = None
         if args.save_map:
             out = Path(args.save_map)
             if out.exists() and not out.is_dir():
@@ -57,50 +54,41 @@ class MapRun:
         if self.args.save_map:
             pipeline.backend.keep_loop_database = True
         if self.saved is not None:
-            from metricslam.slam.map.relocalizer import Relocalizer
+            from metricslam.slam.map.localization import MapLocalization
 
-            self.relocalizer = Relocalizer(self.saved, self.camera, self.config.graph_config().loop)
-            self.relocalizer.attach(pipeline)
+            self.localization = MapLocalization(self.saved, self.camera, self.config.graph_config().loop,
+                                                self.args.map)
+            self.localization.attach(pipeline)
 
     def finish(self, pipeline, trajectory: list) -> list:
-        """After ``pipeline.close()``: save the map (``--save-map``) and return the trajectory to
-        write — in the map frame, from the first relocalized frame on, with ``--map``."""
+        """After ``pipeline.close()``: return the trajectory to write — in the map frame, from the
+        first relocalized frame on, with ``--map`` — and save the map (``--save-map``: the
+        session's own, or with ``--map`` the loaded map extended by it, ``merge.py``)."""
+        kept = trajectory
+        if self.localization is not None:
+            self.localization.refresh(force=True)
+            kept = self.localization.map_trajectory(trajectory)
+            self._stats["map"] = self.localization.stats(len(trajectory), len(kept))
         if self.args.save_map:
             self._save(pipeline)
-        if self.relocalizer is None:
-            return trajectory
-        from metricslam.slam.map.relocalizer import to_map_frame
-
-        reloc = self.relocalizer
-        S, used, rejected = reloc.S_map_world(pipeline.backend.optimized_keyframe_poses())
-        first = reloc.first_frame if S is not None else None
-        kept = [] if first is None else [dataclasses.replace(e, T_world_cam=to_map_frame(S, e.T_world_cam))
-                                         for e in trajectory if e.frame_index >= first]
-        self._stats["map"] = {
-            "path": str(self.args.map), "relocalized": first is not None,
-            "first_localized_frame": first, "unlocalized_frames": len(trajectory) - len(kept),
-            "relocalization_queries": reloc.n_queries,
-            "relocalization_query_ms_mean": float(sum(reloc.query_ms) / max(len(reloc.query_ms), 1)), "relocalization_matches": len(reloc.matches),
-            "matches_used": used, "matches_rejected": rejected,
-            "map_keyframes": self.saved.n_keyframes,
-            "S_map_world": None if S is None else S.tolist(),
-            "matched_frames": [[m.kf_frame, m.map_kf_id, m.frame_now, m.n_inliers] for m in reloc.matches]}
         return kept
 
     def _save(self, pipeline) -> None:
-        import time
-
-        from metricslam.slam.map.builder import map_from_session
-        from metricslam.slam.map.format import save_map
+        from metricslam.slam.map.localization import save_session_map
+        from metricslam.slam.map.merge import save_extended_map
 
         detector = pipeline.backend.estimator.loop_detector
+        source = {"sequence": str(self.args.seq_dir), "mode": self.config.mode}
         try:
-            t0 = time.perf_counter()
-            saved = map_from_session(pipeline, self.model_id, metric=self.config.use_scale,
-                                     source={"sequence": str(self.args.seq_dir), "mode": self.config.mode})
-            save_map(saved, self.args.save_map)
-            self._stats["map_saved"] = {"path": str(self.args.save_map), "keyframes": saved.n_keyframes,
-                                        "save_s": time.perf_counter() - t0}
+            if self.localization is None:
+                self._stats["map_saved"] = save_session_map(
+                    pipeline, self.args.save_map, self.model_id, metric=self.config.use_scale, source=source)
+            elif self.localization.S_map_world is None:  # the run fails anyway: "never relocalized"
+                self._stats["map_saved"] = {"path": str(self.args.save_map), "skipped": "never relocalized"}
+            else:
+                self._stats["map_saved"] = save_extended_map(
+                    self.localization, pipeline, self.args.save_map, self.model_id,
+                    metric=self.config.use_scale, source=source)
         finally:
             if detector is not None:
                 detector.close()
@@ -121,8 +109,15 @@ class MapRun:
     def summary(self) -> str | None:
         m = self._stats.get("map")
         lines = []
-        if "map_saved" in self._stats:
-            s = self._stats["map_saved"]
+        s = self._stats.get("map_saved")
+        if s is not None and "skipped" in s:
+            lines.append(f"map: NOT saved to {s['path']} ({s['skipped']})")
+        elif s is not None and "extended" in s:
+            e = s["extended"]
+            lines.append(f"map: saved {s['keyframes']} keyframes to {s['path']}: {e['session_keyframes']} of this "
+                         f"session appended, joined by {e['cross_session_factors']} cross-session factors to "
+                         f"{e['map_keyframes_fixed']} fixed map keyframes")
+        elif s is not None:
             lines.append(f"map: saved {s['keyframes']} keyframes to {s['path']}")
         if m is not None:
             if m["relocalized"]:

@@ -23,6 +23,11 @@ Says when the SLAM service started a new session for the camera during the recor
 ``session_restarted`` "new session …", e.g. a second replay whose frames went back), and when the
 service restarted (its health answer's ``instance`` changed, or a continuing
 ``session_restarted``): frames missing then are blamed on the restart, not the replay rate.
+
+With a saved map in the SLAM service (``SLAM_MAP``, docs/maps.md), once poses arrive in the map
+frame (``frame_id "map"``) only those are written, as ``run --map`` writes them: the frames before
+the first map-frame one are in the session's own frame, are counted and left out (a KITTI file's
+first line is then that frame, which is printed).
 """
 
 from __future__ import annotations
@@ -96,21 +101,27 @@ def run(args: argparse.Namespace) -> int:
     finally:
         session.close()
     n_frames = args.frames if args.frames is not None else _frames_seen(recorder.poses, trajectory)
+    poses, recorded, first_map = recorder.poses, trajectory, _first_map_frame(recorder.poses, trajectory)
+    if first_map is not None:  # relocalized into the service's map: write the map frame only
+        poses, trajectory, n_frames = _from_frame(poses, trajectory, n_frames, first_map)
+        print(f"poses in the map frame from frame {first_map} on (the file's first "
+              f"{'line' if args.format == 'kitti' else 'timestamp'} is that frame); the {first_map} frames "
+              "before it are in the session's own frame and left out", flush=True)
     for detail in new_sessions(statuses):
         print(f"the SLAM service started a {detail} (camera {args.camera_id})", flush=True)
     if restart is not None:
         print(f"the SLAM service restarted during the recording: {restart}", flush=True)
     if args.mcap:  # before the pose file, which fails when frames are missing
-        counts = write_mcap(args.mcap, args.camera_id, recorder, trajectory)
+        counts = write_mcap(args.mcap, args.camera_id, recorder, recorded)
         print(f"wrote {sum(counts.values())} messages on {len(counts)} topics to {args.mcap}")
-    unscaled = unscaled_frames(recorder.poses, trajectory, n_frames)
+    unscaled = unscaled_frames(poses, trajectory, n_frames)
     skip = [] if args.include_unscaled else unscaled
-    n_written = write_poses(args.out, args.format, recorder.poses, trajectory, n_frames, skip, missing_ok=True)
-    print(f"wrote {n_written} poses to {args.out} ({_states(recorder.poses, trajectory, n_frames)})")
+    n_written = write_poses(args.out, args.format, poses, trajectory, n_frames, skip, missing_ok=True)
+    print(f"wrote {n_written} poses to {args.out} ({_states(poses, trajectory, n_frames)})")
     where = "left out" if args.format == "tum" else "a placeholder line each"
     if skip:
         print(f"skipped {len(skip)} unscaled poses (frames {_ranges(skip)}; {where}); --all records them")
-    missing = missing_frames(recorder.poses, trajectory, n_frames)
+    missing = missing_frames(poses, trajectory, n_frames)
     if missing and args.frames is None:  # nothing was expected: say what is missing, no failure
         print(f"{len(missing)} of frames 0-{n_frames - 1} have no pose (frames {_ranges(missing)}; {where}; "
               "sent before the recording started?)")
@@ -156,6 +167,23 @@ def _record(recorder, n_frames: int | None, timeout_s: float | None) -> bool:
         print("stopped (Ctrl-C); writing what arrived", flush=True)
         return True
     return False
+
+
+def _first_map_frame(poses: dict, trajectory) -> int | None:
+    """The first frame in the saved map's frame (``frame_id "map"``), or None when none is."""
+    if trajectory is not None:
+        in_map = trajectory.frame_id == "map" and len(trajectory.frame_index)
+        return int(min(trajectory.frame_index)) if in_map else None
+    return min((i for i, p in poses.items() if p.frame_id == "map"), default=None)
+
+
+def _from_frame(poses: dict, trajectory, n_frames: int, first: int) -> tuple:
+    """``(poses, trajectory, n_frames)`` renumbered so that frame ``first`` is frame 0, the frames
+    before it dropped (map-frame poses only: world-frame ones after ``first`` are dropped too)."""
+    kept = {i - first: p for i, p in poses.items() if i >= first and p.frame_id == "map"}
+    if trajectory is not None:
+        trajectory = trajectory.model_copy(update={"frame_index": trajectory.frame_index - first})
+    return kept, trajectory, max(n_frames - first, 0)
 
 
 def _frames_seen(poses: dict, trajectory) -> int:

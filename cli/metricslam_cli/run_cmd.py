@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     if maps is not None:
         maps.attach(pipeline)
     if viewer is not None:
-        viewer.attach(pipeline)  # keyframe depth maps arrive as the back end's ScaleMeasured events
+        viewer.attach(pipeline, camera_id(seq.name))  # depth maps and scale records: back-end events
     recorder = SessionRecorder(mcap_log, pipeline) if mcap_log is not None else None
     streams = None
     if args.live_out or args.continuous_out:

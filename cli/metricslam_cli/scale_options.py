@@ -11,15 +11,16 @@ import argparse
 import logging
 
 
-def add_scale_options(p: argparse.ArgumentParser) -> None:
-    """Add ``--scale-sources`` and ``--mount-height`` to a command's parser."""
+def add_scale_options(p: argparse.ArgumentParser, note: str = "") -> None:
+    """Add ``--scale-sources`` and ``--mount-height`` to a command's parser (``note``: appended
+    to both helps, e.g. who owns the settings)."""
     p.add_argument("--scale-sources", default=None, metavar="LIST",
                    help="comma-separated scale sources of the global graph: learned (the depth "
                         "network, default), ground (the road plane and --mount-height) or "
-                        "learned,ground (docs/ground_scale.md)")
+                        "learned,ground (docs/ground_scale.md)" + note)
     p.add_argument("--mount-height", type=float, default=None, metavar="M",
                    help="camera optical centre above the road in metres (0 < M <= 10; KITTI: 1.65), "
-                        "for ground-plane scale; default: the calibration file's mount_height_m")
+                        "for ground-plane scale; default: the calibration file's mount_height_m" + note)
 
 
 def scale_flags(args: argparse.Namespace, calibration_mount_height_m: float | None = None) -> tuple[dict, dict]:

@@ -62,6 +62,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "(env SLAM_STATE_DIR; docs/deployment.md)")
     p.add_argument("--max-cameras", type=int, metavar="N",
                    help="cameras served at once; more are refused (default 8; env SLAM_MAX_CAMERAS)")
+    p.add_argument("--map", metavar="MAP",
+                   help="a saved map (run --save-map) every camera relocalizes into; poses in the map "
+                        "frame from then on; an unusable map is logged and not used (env SLAM_MAP; "
+                        "docs/maps.md)")
     add_scale_options(p)
     p.set_defaults(func=run)
     return p
@@ -96,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("zenoh_endpoint", "session_kind", "status_period_s",
                                                  "keyframe_images", "rerun", "frame_key_expr",
-                                                 "ros2", "ros2_domain_id", "state_dir", "max_cameras")
+                                                 "ros2", "ros2_domain_id", "state_dir", "max_cameras", "map")
                  if getattr(args, k) is not None}
     if args.depth_url is not None:
         overrides["depth_url"] = None if args.depth_url.lower() == "none" else args.depth_url

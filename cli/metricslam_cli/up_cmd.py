@@ -63,6 +63,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "removed when up stops)")
     p.add_argument("--rerun", metavar="TARGET",
                    help="SLAM live view: 'web' or FILE.rrd (needs metricslam[viz])")
+    p.add_argument("--map", metavar="MAP",
+                   help="the SLAM service's saved map (SLAM_MAP; docs/maps.md): cameras relocalize into it")
     add_scale_options(p)  # passed on to the SLAM service (docs/ground_scale.md)
     p.set_defaults(func=run)
     return p
@@ -89,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     log_scale_sources(config, logging.getLogger("metricslam.up"))
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    if args.map:  # the SLAM child reads it from its environment (a bad map: it runs without one)
+        os.environ["SLAM_MAP"] = str(Path(args.map).resolve())
     # without state, a SLAM service the supervisor restarts starts its cameras over at the origin
     state_dir = args.state_dir or os.environ.get("SLAM_STATE_DIR") or None
     scratch = None if state_dir else tempfile.TemporaryDirectory(prefix="metricslam-up-state-")

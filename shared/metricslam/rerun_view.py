@@ -14,6 +14,11 @@ y down, z forward as in docs/conventions.md)::
     world/<cam>/landmarks         Points3D of the local window's landmarks (VO world)
     world/keyframe_depth          DepthImage (metres) of each keyframe the depth source answered
                                   for (logged from the back end's depth worker as answers arrive)
+    scale/<cam>/<name>            Scalars per keyframe scale record (the back end's
+                                  ScaleHealthUpdated events, on the "frame" and "t" timelines of
+                                  the keyframe): learned, ground (m per keyframe VO unit),
+                                  disagreement_log, learned_spread_log, sigma_log (the back end's
+                                  σ of log scale), warning (1 = the sources disagree)
 
 ``target`` is ``web`` (gRPC server + web viewer on localhost; the log says the URL) or a path
 ending in ``.rrd`` (a recording file; ``rerun FILE.rrd`` opens it).
@@ -29,7 +34,7 @@ import numpy as np
 
 from metricslam.datasets.base import Frame
 from metricslam.errors import ConfigError
-from metricslam.slam.events import ScaleMeasured
+from metricslam.slam.events import SCALE_RECORD_VALUES, ScaleHealthUpdated, ScaleMeasured, scale_record
 from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
@@ -87,21 +92,40 @@ class RerunView:
             if points is not None and len(points):
                 rec.log(f"{base}/landmarks", rr.Points3D(points, radii=0.05))
 
-    def attach(self, session: object) -> None:
+    def attach(self, session: object, camera_id: str | None = None) -> None:
         """Subscribe to a session's back-end events (``session.backend.events``): each keyframe's
-        depth map (:class:`~metricslam.slam.events.ScaleMeasured`) goes to :meth:`log_depth`.
-        A session without a back end (``vo_only``) has no depth maps to show."""
+        depth map (:class:`~metricslam.slam.events.ScaleMeasured`) goes to :meth:`log_depth`, each
+        scale record (:class:`~metricslam.slam.events.ScaleHealthUpdated`) to ``scale/<camera_id>``.
+        A session without a back end (``vo_only``) has neither to show."""
         backend = getattr(session, "backend", None)
         if backend is not None and hasattr(backend, "events"):
             backend.events.subscribe(self._on_scale_measured, ScaleMeasured)
+            base = f"scale/{camera_id}" if camera_id else "scale"
+            backend.events.subscribe(lambda ev: self.log_scale(base, ev, scale_record(ev, backend)),
+                                     ScaleHealthUpdated)
 
     def observing(self, factory):
         """Wrap a session factory so every new session is :meth:`attach`-ed."""
         def make(camera_id, camera):
             session = factory(camera_id, camera)
-            self.attach(session)
+            self.attach(session, camera_id)
             return session
         return make
+
+    def log_scale(self, base: str, ev: ScaleHealthUpdated, values: dict[str, float | None]) -> None:
+        """One keyframe's scale record as scalars under ``base`` (NaN or None: not logged)."""
+        try:
+            with self._lock:
+                rr, rec = self._rr, self._rec
+                rec.set_time("frame", sequence=int(ev.frame_index))  # this thread's time only
+                rec.set_time("t", timestamp=ev.t_ns * 1e-9)
+                for name in SCALE_RECORD_VALUES:
+                    value = values.get(name)
+                    if value is not None and np.isfinite(value):
+                        rec.log(f"{base}/{name}", rr.Scalars(float(value)))
+                rec.log(f"{base}/warning", rr.Scalars(float(ev.warning)))
+        except Exception:  # noqa: BLE001 -- viewing is best effort
+            log.exception("rerun scale logging failed")
 
     def _on_scale_measured(self, ev: ScaleMeasured) -> None:
         if ev.inv_depth_map_per_m is not None:

@@ -26,6 +26,7 @@ from metricslam.errors import ConfigError, ImageError
 from metricslam.ros2 import messages
 from metricslam.ros2.rmw_zenoh import frame_ids, ros_token
 from metricslam.ros2.typestore import msgdef, serialize, typestore
+from metricslam.slam.events import SCALE_RECORD_VALUES
 
 
 class McapTopics:
@@ -36,9 +37,15 @@ class McapTopics:
         path: ``/metricslam/<tok>/path`` nav_msgs/Path, the optimized trajectory when it changed.
         image: ``/metricslam/<tok>/keyframe/image/compressed`` sensor_msgs/CompressedImage (JPEG).
         camera_info: ``/metricslam/<tok>/keyframe/camera_info`` sensor_msgs/CameraInfo.
-        depth: ``/metricslam/<tok>/keyframe/depth`` sensor_msgs/Image ``32FC1``, coarse depth (m).
+        depth: ``/metricslam/<tok>/keyframe/depth/image`` sensor_msgs/Image ``32FC1``, coarse depth (m).
+        depth_info: ``/metricslam/<tok>/keyframe/depth/camera_info`` sensor_msgs/CameraInfo of that
+            depth image at its own (coarse) resolution — the live bridge's topics, same names.
         landmarks: ``/metricslam/<tok>/landmarks`` sensor_msgs/PointCloud2 (x, y, z float32).
         tf: ``/tf`` tf2_msgs/TFMessage, ``<tok>/world`` -> ``<tok>/camera_optical`` every frame.
+        scale: ``/metricslam/<tok>/scale/<name>`` per keyframe scale record (:meth:`McapLog.scale_health`):
+            ``learned``, ``ground`` (m per keyframe VO unit), ``disagreement_log``
+            (log learned / ground), ``learned_spread_log``, ``sigma_log`` (the back end's σ of
+            log scale) as std_msgs/Float64 and ``warning`` as std_msgs/Bool.
         world_frame, camera_frame: the ``frame_id`` values.
     """
 
@@ -48,8 +55,10 @@ class McapTopics:
         self.pose, self.path, self.landmarks = f"{base}/pose", f"{base}/path", f"{base}/landmarks"
         self.image = f"{base}/keyframe/image/compressed"
         self.camera_info = f"{base}/keyframe/camera_info"
-        self.depth = f"{base}/keyframe/depth"
+        self.depth = f"{base}/keyframe/depth/image"
+        self.depth_info = f"{base}/keyframe/depth/camera_info"
         self.tf = "/tf"
+        self.scale = {name: f"{base}/scale/{name}" for name in SCALE_RECORD_VALUES + ("warning",)}
         self.world_frame, self.camera_frame = frame_ids(camera_id)
 
 
@@ -109,17 +118,33 @@ class McapLog:
         if camera is not None:
             self.write(tp.camera_info, messages.camera_info(camera, t_ns, tp.camera_frame), t_ns)
 
-    def keyframe_depth(self, t_ns: int, inv_depth_per_m: np.ndarray) -> None:
-        """A keyframe's coarse metric inverse depth (1/m) as a ``32FC1`` depth image in metres
-        (NaN where the inverse depth is not positive)."""
+    def keyframe_depth(self, t_ns: int, inv_depth_per_m: np.ndarray, camera: PinholeCamera | None = None,
+                       image_size_px: tuple[int, int] | None = None) -> None:
+        """A keyframe's coarse metric inverse depth (h, w) 1/m as a ``32FC1`` depth image in metres
+        (NaN where the inverse depth is not positive), and, when the keyframe's ``camera`` and
+        image size (width, height) px are known, the CameraInfo of the coarse grid beside it."""
         inv = np.asarray(inv_depth_per_m, dtype=np.float32)
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_m = np.where(inv > 0, 1.0 / inv, np.nan).astype(np.float32)
-        self.write(self.topics.depth, messages.image(depth_m, t_ns, self.topics.camera_frame), t_ns)
+        tp = self.topics
+        self.write(tp.depth, messages.image(depth_m, t_ns, tp.camera_frame), t_ns)
+        if camera is not None:
+            size = image_size_px or (camera.width_px, camera.height_px)
+            grid = messages.depth_grid_camera(camera, size, depth_m.shape)
+            self.write(tp.depth_info, messages.camera_info(grid, t_ns, tp.camera_frame), t_ns)
 
     def landmarks(self, t_ns: int, points_world: np.ndarray) -> None:
         """Landmark positions (N, 3) in the SLAM world frame."""
         self.write(self.topics.landmarks, messages.point_cloud2(points_world, t_ns, self.topics.world_frame), t_ns)
+
+    def scale_health(self, t_ns: int, values: dict[str, float | None], warning: bool) -> None:
+        """One keyframe's scale record: each finite number of ``values`` (keys of
+        :data:`SCALE_RECORD_VALUES`; None or NaN: not known, nothing written) and the health flag."""
+        for name in SCALE_RECORD_VALUES:
+            value = values.get(name)
+            if value is not None and np.isfinite(value):
+                self.write(self.topics.scale[name], messages.float64(value), t_ns)
+        self.write(self.topics.scale["warning"], messages.flag(warning), t_ns)
 
     # -- plumbing -------------------------------------------------------------------------------
     def write(self, topic: str, message: Any, log_time_ns: int) -> None:

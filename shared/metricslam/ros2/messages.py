@@ -23,7 +23,8 @@ from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError
 from metricslam.geometry import so3
 from metricslam.ros2.typestore import (
-    CAMERA_INFO, COMPRESSED_IMAGE, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, TF_MESSAGE, msg_class,
+    BOOL, CAMERA_INFO, COMPRESSED_IMAGE, FLOAT64, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, TF_MESSAGE,
+    msg_class,
 )
 
 #: image encodings accepted as SLAM input (sensor_msgs/image_encodings.hpp names)
@@ -139,6 +140,19 @@ def compressed_image(data: bytes, t_ns: int, frame_id: str, fmt: str = "jpeg") -
                                        data=np.frombuffer(bytes(data), dtype=np.uint8).copy())
 
 
+def depth_grid_camera(camera: PinholeCamera, image_size_px: tuple[int, int], grid_shape: tuple[int, int]) -> PinholeCamera:
+    """The intrinsics of a keyframe's coarse depth grid ``(h, w)``: ``camera`` (the keyframe
+    image's, brought to ``image_size_px`` = (width, height) if it differs) resized to the grid,
+    which covers the whole image (pixel centres map to pixel centres,
+    :meth:`~metricslam.camera.PinholeCamera.resized`) — the CameraInfo that pairs with the depth
+    image (image_transport's convention), in the MCAP recordings and on the live bridge alike."""
+    width_px, height_px = (int(image_size_px[0]), int(image_size_px[1]))
+    if (camera.width_px, camera.height_px) != (width_px, height_px):
+        camera = camera.resized(width_px, height_px)
+    h, w = (int(grid_shape[0]), int(grid_shape[1]))
+    return camera.resized(w, h)
+
+
 def camera_info(camera: PinholeCamera, t_ns: int, frame_id: str) -> Any:
     """``sensor_msgs/CameraInfo`` of a rectified pinhole camera: ``plumb_bob`` with zero D,
     ``K`` and ``P = [K | 0]``, ``R = I``."""
@@ -161,6 +175,16 @@ def tf_message(T_parent_child: np.ndarray, t_ns: int, parent: str, child: str) -
     stamped = msg_class("geometry_msgs/msg/TransformStamped")(
         header=header(t_ns, parent), child_frame_id=child, transform=transform)
     return msg_class(TF_MESSAGE)(transforms=[stamped])
+
+
+def float64(value: float) -> Any:
+    """``std_msgs/Float64`` (a plottable number; the topic name says what and in which unit)."""
+    return msg_class(FLOAT64)(data=float(value))
+
+
+def flag(value: bool) -> Any:
+    """``std_msgs/Bool``."""
+    return msg_class(BOOL)(data=bool(value))
 
 
 # -- input ------------------------------------------------------------------------------------

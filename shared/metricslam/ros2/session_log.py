@@ -2,8 +2,10 @@
 
 The session's own outputs only: each frame's :class:`PoseEstimate`, its keyframe images, the
 local window's landmarks, the optimized trajectory (:meth:`SlamSession.trajectory`) whenever it
-changed, and each keyframe's depth answer from the back end's typed events
-(:class:`~metricslam.slam.events.ScaleMeasured`) — never by wrapping the session's inputs.
+changed, each keyframe's depth answer and its scale record (learned and ground scale, their
+disagreement, the health flag, and the back end's scale σ read when the record arrives) from
+the back end's typed events (:class:`~metricslam.slam.events.ScaleMeasured`,
+:class:`~metricslam.slam.events.ScaleHealthUpdated`) — never by wrapping the session's inputs.
 
 Example (what ``metricslam run SEQ --mcap run.mcap`` does)::
 
@@ -24,7 +26,7 @@ import numpy as np
 
 from metricslam.datasets.base import Frame
 from metricslam.ros2.mcap_log import McapLog
-from metricslam.slam.events import LoopAccepted, ScaleMeasured, Solved, WarpApplied
+from metricslam.slam.events import LoopAccepted, ScaleHealthUpdated, ScaleMeasured, Solved, WarpApplied, scale_record
 from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
@@ -54,15 +56,21 @@ class SessionRecorder:
         self.session = session
         self._path_dirty = threading.Event()
         self._last_t_ns = 0
+        self._camera = None
         backend = getattr(session, "backend", None)
+        self._backend = backend
         self._events = getattr(backend, "events", None)
         if self._events is not None:
             self._events.subscribe(self._on_depth, ScaleMeasured)
             self._events.subscribe(self._on_change, Solved, WarpApplied, LoopAccepted)
+            self._events.subscribe(self._on_scale_health, ScaleHealthUpdated)
 
     def _on_depth(self, ev: ScaleMeasured) -> None:
         if ev.inv_depth_map_per_m is not None:
-            self.log.keyframe_depth(ev.t_ns, ev.inv_depth_map_per_m)
+            self.log.keyframe_depth(ev.t_ns, ev.inv_depth_map_per_m, self._camera, ev.image_size)
+
+    def _on_scale_health(self, ev: ScaleHealthUpdated) -> None:
+        self.log.scale_health(ev.t_ns, scale_record(ev, self._backend), ev.warning)
 
     def _on_change(self, ev: object) -> None:
         self._path_dirty.set()
@@ -71,6 +79,8 @@ class SessionRecorder:
         """Log one processed frame: its pose; at a keyframe its image and the window's
         landmarks; the optimized path when a keyframe or a global solve changed it."""
         self._last_t_ns = max(self._last_t_ns, int(est.t_ns))
+        if frame.camera is not None:
+            self._camera = frame.camera  # the keyframes' intrinsics, for their depth grids' CameraInfo
         self.log.pose(est.t_ns, est.T_world_cam)
         if est.is_keyframe:
             if frame.image is not None:
@@ -88,6 +98,7 @@ class SessionRecorder:
         if self._events is not None:
             self._events.unsubscribe(self._on_depth)
             self._events.unsubscribe(self._on_change)
+            self._events.unsubscribe(self._on_scale_health)
         self.log.path(self._last_t_ns, *valid_trajectory(self.session))
 
     def close(self) -> None:

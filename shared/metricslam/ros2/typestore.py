@@ -28,6 +28,8 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+FLOAT64 = "std_msgs/msg/Float64"
+BOOL = "std_msgs/msg/Bool"
 
 
 @functools.cache

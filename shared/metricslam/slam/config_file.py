@@ -48,6 +48,7 @@ from pydantic import ValidationError
 
 from metricslam.errors import ConfigError, validation_problems
 from metricslam.slam.graph.config import GraphConfig
+from metricslam.slam.ground.config import LAYER_CONTEXT
 from metricslam.slam.system_config import DETERMINISTIC_GRAPH, DETERMINISTIC_VO, SystemConfig
 from metricslam.slam.vo.config import VOConfig
 
@@ -86,7 +87,10 @@ def load_system_config(path: str | Path | None = None, *, env: Mapping[str, str]
               ("command line", overrides or {})]
     merged: dict[str, Any] = {}
     for where, layer in layers:
-        _validate(layer, where)
+        # each layer's values are checked where they are written; rules that tie fields of
+        # several layers together (``scale.sources: [ground]`` needs a mounting height, which
+        # the calibration file or another layer may give) only on the combination
+        _validate(layer, where, context={LAYER_CONTEXT: True})
         merged = _merge(merged, layer)
     return _validate(merged, "combined configuration")
 
@@ -154,9 +158,9 @@ def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _validate(layer: dict[str, Any], where: str) -> SystemConfig:
+def _validate(layer: dict[str, Any], where: str, context: dict | None = None) -> SystemConfig:
     try:
-        return SystemConfig.model_validate(layer)
+        return SystemConfig.model_validate(layer, context=context)
     except ValidationError as exc:
         raise ConfigError(f"{where}: invalid config: {validation_problems(exc)}") from exc
     except ConfigError as exc:  # raised by VOConfig inside the vo section's validator

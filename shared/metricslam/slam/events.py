@@ -94,6 +94,47 @@ class GroundScaleMeasured:
 
 
 @dataclass(frozen=True)
+class ScaleHealthUpdated:
+    """A keyframe's scale measurements as the scale-health observer holds them, after one of them
+    arrived (:class:`~metricslam.slam.ground.health.ScaleHealth`; emitted on the thread of the
+    measurement that arrived, right after it). The recordings log it (``run --rerun/--mcap``).
+
+    Attributes:
+        kf_id, frame_index, t_ns: the keyframe.
+        learned_scale: the learned source's robust estimate (metres per keyframe VO unit; NaN:
+            none yet or none used).
+        ground_scale: the accepted road-plane measurement (same units; NaN: none).
+        disagreement_log: ``log(learned / ground)`` (NaN unless both are known).
+        warning: the scale-health flag after this keyframe (the sources disagree).
+        learned_spread_log: standard deviation of log learned scale over the last
+            ``ScaleHealthConfig.window`` keyframes (NaN under 2).
+    """
+
+    kf_id: int
+    frame_index: int
+    t_ns: int
+    learned_scale: float
+    ground_scale: float
+    disagreement_log: float
+    warning: bool
+    learned_spread_log: float = float("nan")
+
+
+#: the numbers of one keyframe's scale record as the recordings name them (:func:`scale_record`)
+SCALE_RECORD_VALUES = ("learned", "ground", "disagreement_log", "learned_spread_log", "sigma_log")
+
+
+def scale_record(ev: ScaleHealthUpdated, backend: object = None) -> dict[str, float | None]:
+    """One keyframe's scale record for a recording (keys :data:`SCALE_RECORD_VALUES`): the
+    event's numbers — learned and ground scale (m per keyframe VO unit), ``log(learned /
+    ground)``, the learned spread — and ``sigma_log``, the back end's σ of the newest solved
+    keyframe's log scale as it stands now (``backend.scale_sigma_log()``; None when unknown)."""
+    sigma_of = getattr(backend, "scale_sigma_log", None)
+    return {"learned": ev.learned_scale, "ground": ev.ground_scale, "disagreement_log": ev.disagreement_log,
+            "learned_spread_log": ev.learned_spread_log, "sigma_log": sigma_of() if callable(sigma_of) else None}
+
+
+@dataclass(frozen=True)
 class Solved:
     """One incremental solve of the global graph finished.
 
@@ -159,8 +200,8 @@ class KeyframeMarginalized:
     frame_index_now: int
 
 
-Event = (ScaleMeasured | GroundScaleMeasured | Solved | LoopAccepted | WarpApplied | InitialScaleApplied
-         | KeyframeMarginalized)
+Event = (ScaleMeasured | GroundScaleMeasured | ScaleHealthUpdated | Solved | LoopAccepted | WarpApplied
+         | InitialScaleApplied | KeyframeMarginalized)
 
 
 class EventBus:

@@ -8,13 +8,18 @@ and owns the byte layout. So the package's import graph has no cycle
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
 from metricslam.errors import CodecError
 from metricslam.wire.keys import check_camera_id
+
+#: the frame a pose or point field is in: ``"world"`` the camera session's own world frame (its
+#: first keyframe), ``"map"`` the saved map the SLAM service loaded, once the session relocalized
+#: into it (``docs/maps.md``). A field named ``T_world_cam`` holds ``T_map_cam`` then.
+FrameId = Literal["world", "map"]
 
 #: the dtypes an array field may have on the wire, all little-endian
 DTYPES = {"uint8": np.dtype("<u1"), "int64": np.dtype("<i8"), "float32": np.dtype("<f4"),

@@ -13,7 +13,7 @@ from pydantic import Field, field_validator, model_validator
 
 from metricslam.camera import PinholeCamera
 from metricslam.slam.types import ScaleState, TrackingState
-from metricslam.wire.base import Message, as_array, finite_pose
+from metricslam.wire.base import FrameId, Message, as_array, finite_pose
 from metricslam.wire.scale_status import ScaleHealthStatus
 
 #: tracking states as compact codes (index in this tuple) inside trajectory arrays.
@@ -72,6 +72,8 @@ class PoseMessage(Message):
     :class:`~metricslam.slam.types.ScaleState`) and ``scale_factors`` the learned scale
     measurements behind it; both optional (None from senders that predate them: then read
     ``scale_established`` alone, :meth:`effective_scale_state`).
+    ``frame_id``: the frame of ``T_world_cam`` (:data:`~metricslam.wire.base.FrameId`: ``"map"``
+    once the session relocalized into the service's saved map, which makes it ``T_map_cam``).
     """
 
     KIND: ClassVar[str] = "pose"
@@ -87,6 +89,7 @@ class PoseMessage(Message):
     t_sent_ns: int | None = None
     scale_state: ScaleState | None = None
     scale_factors: int | None = Field(default=None, ge=0)
+    frame_id: FrameId = "world"
     T_world_cam: np.ndarray
 
     @field_validator("T_world_cam")
@@ -103,7 +106,8 @@ class PoseMessage(Message):
 
 
 class KeyframeMessage(Message):
-    """A new keyframe (``metricslam/<id>/keyframe``): its pose and, optionally, its image."""
+    """A new keyframe (``metricslam/<id>/keyframe``): its pose (in ``frame_id``, as
+    :class:`PoseMessage`) and, optionally, its image."""
 
     KIND: ClassVar[str] = "keyframe"
     ARRAYS: ClassVar[tuple[str, ...]] = ("T_world_cam", "image")
@@ -112,6 +116,7 @@ class KeyframeMessage(Message):
     t_ns: int = Field(ge=0)
     segment_id: int = Field(default=0, ge=0)
     scale_established: bool = False
+    frame_id: FrameId = "world"
     T_world_cam: np.ndarray
     image: np.ndarray | None = None
 
@@ -135,7 +140,9 @@ class StatusMessage(Message):
     ``scale_state``: the latest pose's (optional; ``unscaled`` while no depth source answers).
     ``latency_ms_*``: frame receipt -> pose publish inside the service, over a recent window.
     ``event`` / ``event_detail``: set on one-off statuses about the camera's session
-    (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state").
+    (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state"), or its
+    saved map (``relocalized``: poses are in the map frame from now on; ``map_refused``: the
+    service's map does not fit this camera, which runs without it; docs/maps.md).
     ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
     """
 
@@ -159,7 +166,8 @@ class StatusMessage(Message):
     depth_outages: int = Field(default=0, ge=0)
     scale_state: ScaleState | None = None
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
-    event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over"] | None = None
+    event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over",
+                   "relocalized", "map_refused"] | None = None
     event_detail: str | None = Field(default=None, max_length=1000)
     scale_health: ScaleHealthStatus | None = None
 
@@ -168,13 +176,16 @@ class TrajectoryMessage(Message):
     """The whole current (optimized) trajectory of a camera, answer of ``…/trajectory``.
 
     ``frame_index`` (N,) int64, ``t_ns`` (N,) int64, ``T_world_cam`` (N, 4, 4) float64,
-    ``state_code`` (N,) uint8 index into :data:`STATE_CODES`.
+    ``state_code`` (N,) uint8 index into :data:`STATE_CODES`. ``frame_id``: the frame of the
+    poses (as :class:`PoseMessage`; after relocalization into a map, only its frames from the first
+    localized one on).
     """
 
     KIND: ClassVar[str] = "trajectory"
     ARRAYS: ClassVar[tuple[str, ...]] = ("frame_index", "t_ns", "T_world_cam", "state_code")
 
     scale_established: bool = False
+    frame_id: FrameId = "world"
     frame_index: np.ndarray
     t_ns: np.ndarray
     T_world_cam: np.ndarray

@@ -17,6 +17,8 @@ Per camera ``<camera_id>``::
     metricslam/_service/health          queryable -> JSON of the SLAM service's readiness
     metricslam/_router/health           queryable -> JSON, answered by the router of ``metricslam up``
                                              itself (the supervisor's liveness probe)
+    metricslam/_service/map/save/<camera_id>  queryable -> JSON: the camera's session map saved to
+                                             the folder the payload names (docs/maps.md)
 
 Camera ids are one key chunk: letters, digits, ``-``, ``_`` and ``.``; they may not start with
 ``_`` (reserved for service keys).
@@ -76,3 +78,13 @@ RESET_KEY_PREFIX = f"{PREFIX}/_service/reset"
 def reset_key(camera_id: str) -> str:
     """``metricslam/_service/reset/<camera_id>`` (:data:`RESET_KEY_PREFIX`)."""
     return f"{RESET_KEY_PREFIX}/{check_camera_id(camera_id)}"
+
+
+#: the SLAM service's queryable ``metricslam/_service/map/save/<camera_id>``: save the camera's
+#: session map to the folder named by the query's payload (docs/maps.md)
+MAP_SAVE_KEY_PREFIX = f"{PREFIX}/_service/map/save"
+
+
+def map_save_key(camera_id: str) -> str:
+    """``metricslam/_service/map/save/<camera_id>`` (:data:`MAP_SAVE_KEY_PREFIX`)."""
+    return f"{MAP_SAVE_KEY_PREFIX}/{check_camera_id(camera_id)}"

@@ -10,7 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import Field, field_validator
 
-from metricslam.wire.base import Message, as_array
+from metricslam.wire.base import FrameId, Message, as_array
 
 
 class LandmarksMessage(Message):
@@ -18,7 +18,7 @@ class LandmarksMessage(Message):
 
     ``points_world``: (N, 3) float32 landmark positions in the SLAM world frame (world units:
     metres once ``scale_established``), those with a known depth; ``frame_index``/``t_ns``: the
-    keyframe that triggered it.
+    keyframe that triggered it; ``frame_id``: their frame (``"map"``: the saved map's, metres).
     """
 
     KIND: ClassVar[str] = "landmarks"
@@ -27,6 +27,7 @@ class LandmarksMessage(Message):
     frame_index: int = Field(ge=0)
     t_ns: int = Field(ge=0)
     scale_established: bool = False
+    frame_id: FrameId = "world"
     points_world: np.ndarray
 
     @field_validator("points_world")

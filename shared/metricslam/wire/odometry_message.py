@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from metricslam.slam.types import ScaleState, TrackingState
-from metricslam.wire.base import Message, as_array, finite_pose
+from metricslam.wire.base import FrameId, Message, as_array, finite_pose
 
 
 class OdometryMessage(Message):
@@ -29,6 +29,8 @@ class OdometryMessage(Message):
     frame without a tracked pose). ``correction_m`` / ``correction_rad``: distance and angle still
     to blend in (this pose vs the live one); ``blend_until_t_ns``: when it will be in.
     ``scale_state`` / ``scale_factors``: those of the live pose (:class:`ScaleState`).
+    ``frame_id``: the frame of the poses (``"map"``: ``T_world_*`` are ``T_map_*``; the stream
+    starts over when a session relocalizes into the map).
     """
 
     KIND: ClassVar[str] = "odometry"
@@ -43,6 +45,7 @@ class OdometryMessage(Message):
     correction_m: float = Field(ge=0)
     correction_rad: float = Field(ge=0)
     blend_until_t_ns: int
+    frame_id: FrameId = "world"
     T_world_cam: np.ndarray
     T_world_odom: np.ndarray
     T_odom_cam: np.ndarray

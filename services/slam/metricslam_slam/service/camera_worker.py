@@ -104,6 +104,7 @@ class CameraWorker:
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=500)
         self._done_times: collections.deque[float] = collections.deque(maxlen=50)
         self._last_T = np.eye(4)
+        self._frame_id = "world"  # of the last published pose ("map": relocalized into the service's map)
         self._odometry = OdometryStream(camera_id, publish)  # ".../odom", beside ".../pose"
         self._thread = threading.Thread(target=self._run, name=f"slam-{camera_id}", daemon=True)
         self._thread.start()
@@ -150,6 +151,17 @@ class CameraWorker:
         """The intrinsics of the camera's frames (None before its first valid frame)."""
         return self._camera
 
+    @property
+    def frame_id(self) -> str:
+        """The frame the session's poses are in now: ``"map"`` once it relocalized into the
+        service's saved map (:class:`~metricslam.slam.map.localization.MapFrameSession`)."""
+        return getattr(self._session, "frame_id", "world")
+
+    def with_session(self, fn: Callable[[SlamSession], object]) -> object:
+        """``fn(session)`` between two frames (under the session lock); None without a session."""
+        with self._session_lock:
+            return None if self._session is None else fn(self._session)
+
     def stalled_s(self, now_s: float) -> float:
         """Seconds (monotonic) the worker has been on its current frame; 0 while waiting for one
         (the service's watchdog, :mod:`metricslam_slam.service.watchdog`)."""
@@ -190,19 +202,24 @@ class CameraWorker:
                 est = PoseEstimate(msg.frame_index, msg.t_ns, self._last_T, TrackingState.INVALID_FRAME)
         self._last_T = est.T_world_cam
         latency_ms = (time.perf_counter_ns() - t_in_ns) / 1e6
+        frame_id = self.frame_id
+        if frame_id != self._frame_id:  # relocalized into the map: the continuous stream starts over there
+            self._frame_id = frame_id
+            self._odometry = OdometryStream(self.camera_id, self._publish)
+            self._odometry.attach(self._session)
         self._publish("pose", PoseMessage(
             camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
             state=est.state, is_keyframe=est.is_keyframe, segment_id=est.segment_id,
             scale_established=est.scale_established, processing_ms=latency_ms,
             t_sent_ns=msg.t_sent_ns, scale_state=est.scale_state, scale_factors=est.scale_factors,
-            T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
-        self._odometry.after_pose(est)
+            frame_id=frame_id, T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64)))
+        self._odometry.after_pose(est, frame_id)
         if est.is_keyframe:
             self.keyframes += 1
             self._session_keyframes += 1
             self._publish("keyframe", KeyframeMessage(
                 camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
-                segment_id=est.segment_id, scale_established=est.scale_established,
+                segment_id=est.segment_id, scale_established=est.scale_established, frame_id=frame_id,
                 T_world_cam=np.asarray(est.T_world_cam, dtype=np.float64),
                 image=msg.image if self._keyframe_images else None))
         if self._on_estimate is not None:
@@ -312,6 +329,13 @@ class CameraWorker:
         """The session's current trajectory (waits for at most the frame being processed)."""
         with self._session_lock:
             return list(self._final) if self._session is None else list(self._session.trajectory())
+
+    def framed_trajectory(self) -> tuple[str, list[PoseEstimate]]:
+        """``(frame_id, trajectory)`` read together: a session relocalizes between two frames."""
+        with self._session_lock:
+            if self._session is None:
+                return self._frame_id, list(self._final)
+            return getattr(self._session, "frame_id", "world"), list(self._session.trajectory())
 
     def status(self, depth_url: str | None, depth_reachable: bool | None,
                depth_error: str | None, depth_outages: int = 0) -> StatusMessage:

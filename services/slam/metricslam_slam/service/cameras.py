@@ -75,6 +75,7 @@ class Cameras:
         # camera id -> why its next worker must start a fresh session (a reset with no worker running)
         self._pending_resets: collections.OrderedDict[str, str] = collections.OrderedDict()
         self._accepting = True
+        self._closed_frame_ids: dict[str, str] = {}  # camera id -> frame id of its last closed trajectory
         self.store = TrajectoryStore(settings.state_dir) if settings.state_dir is not None else None
         self.refused_frames = 0
         self.refused_cameras = 0  # distinct ids among the last _MAX_REFUSED_IDS refused
@@ -146,6 +147,12 @@ class Cameras:
             return entry[1]
         poses = self.store.load(camera_id) if self.store is not None else []
         return poses or None
+
+    def closed_frame_id(self, camera_id: str) -> str:
+        """The frame id of :meth:`closed_trajectory` (``"world"`` unless the camera relocalized
+        into the service's map before it closed; a trajectory from ``state_dir`` says "world")."""
+        with self._lock:
+            return self._closed_frame_ids.get(camera_id, "world") if camera_id in self._closed else "world"
 
     def prior_poses(self, camera_id: str) -> list[PoseEstimate]:
         """What a new session of ``camera_id`` continues: its closed trajectory, else the one on
@@ -242,9 +249,10 @@ class Cameras:
             self.store.close()
 
     def _close(self, worker: CameraWorker, why: str) -> None:
+        frame_id = "world"
         try:
             worker.close()
-            poses = worker.trajectory()
+            frame_id, poses = worker.framed_trajectory()
         except Exception:  # noqa: BLE001 -- one camera's failure must not stop the others closing
             log.exception("camera %s: closing failed", worker.camera_id)
             poses = []
@@ -256,6 +264,10 @@ class Cameras:
                 self._closed.move_to_end(worker.camera_id)
                 while len(self._closed) > self.settings.max_closed_trajectories:
                     self._closed.popitem(last=False)
+            # "map": it had relocalized into the service's map; kept only beside a kept trajectory
+            self._closed_frame_ids = {k: v for k, v in self._closed_frame_ids.items() if k in self._closed}
+            if worker.camera_id in self._closed:
+                self._closed_frame_ids[worker.camera_id] = frame_id
         if poses and self.store is not None:
             try:
                 self.store.rewrite(worker.camera_id, poses)

@@ -6,6 +6,7 @@ Fed by the session's own outputs (after each processed frame) and its back end's
 * ``keyframe_depth`` — each :class:`ScaleMeasured` with an answer (emitted on the back end's
   depth thread, published from there);
 * ``landmarks`` — the local window's depth-known landmarks after every keyframe;
+* all in the session's frame: ``frame_id "map"`` once it relocalized into the service's saved map;
 * ``path`` — the optimized trajectory (frames with a pose) when it changed: after a keyframe, a
   global solve, an accepted loop or a warp. Building it is O(frames), once per change; a
   continued session's earlier poses come as stored arrays
@@ -83,24 +84,32 @@ class MapPublisher:
         T_world_origin = getattr(self.session, "T_world_origin", None)  # a continued session
         if T_world_origin is not None:
             points = points @ T_world_origin[:3, :3].T + T_world_origin[:3, 3]
+        S_map_world = getattr(self.session, "S_map_world", None)  # relocalized into the service's map
+        if S_map_world is not None:
+            points = points @ S_map_world[:3, :3].T + S_map_world[:3, 3]
         self._path_dirty.set()  # a new keyframe extends the optimized trajectory
         self._publish("landmarks", LandmarksMessage(
             camera_id=self.camera_id, frame_index=est.frame_index, t_ns=est.t_ns,
-            scale_established=est.scale_established, points_world=points.astype(np.float32)))
+            scale_established=est.scale_established, frame_id=self._frame_id(),
+            points_world=points.astype(np.float32)))
+
+    def _frame_id(self) -> str:
+        return getattr(self.session, "frame_id", "world")
 
     def _publish_path(self) -> None:
         path_columns = getattr(self.session, "path_columns", None)  # a continued session
         if path_columns is not None:
             frame_index, t_ns, T_world_cam, state_code, scale_established = path_columns()
             self._publish("path", TrajectoryMessage(
-                camera_id=self.camera_id, scale_established=scale_established, frame_index=frame_index,
+                camera_id=self.camera_id, scale_established=scale_established, frame_id=self._frame_id(),
+                frame_index=frame_index,
                 t_ns=t_ns, T_world_cam=T_world_cam, state_code=state_code))
             return
         kept = [e for e in self.session.trajectory() if e.pose_valid]
         n = len(kept)
         self._publish("path", TrajectoryMessage(
             camera_id=self.camera_id, scale_established=bool(kept and kept[-1].scale_established),
-            frame_index=np.array([e.frame_index for e in kept], dtype=np.int64),
+            frame_id=self._frame_id(), frame_index=np.array([e.frame_index for e in kept], dtype=np.int64),
             t_ns=np.array([e.t_ns for e in kept], dtype=np.int64),
             T_world_cam=np.array([e.T_world_cam for e in kept], dtype=np.float64).reshape(n, 4, 4),
             state_code=TrajectoryMessage.state_codes([e.state for e in kept])))

@@ -33,10 +33,13 @@ class OdometryStream:
         """Follow a new session's corrections (call before its first frame)."""
         self.odometry.attach(session)
 
-    def after_pose(self, est: PoseEstimate) -> None:
-        """Publish the continuous pose of the live pose ``est`` just published (never raises:
-        the odometry stream must not disturb the poses)."""
+    def after_pose(self, est: PoseEstimate, frame_id: str = "world") -> None:
+        """Publish the continuous pose of the live pose ``est`` (in ``frame_id``) just published
+        (never raises: the odometry stream must not disturb the poses)."""
         try:
-            self._publish("odom", OdometryMessage.from_pose(self.camera_id, self.odometry.update(est)))
+            message = OdometryMessage.from_pose(self.camera_id, self.odometry.update(est))
+            if frame_id != "world":
+                message = message.model_copy(update={"frame_id": frame_id})
+            self._publish("odom", message)
         except Exception:  # noqa: BLE001
             log.exception("camera %s: continuous odometry of frame %d failed", self.camera_id, est.frame_index)

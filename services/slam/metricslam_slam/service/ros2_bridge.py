@@ -27,7 +27,8 @@ in::
     /metricslam/<cam>/camera_info  sensor_msgs/CameraInfo (K; D must be zero)
 
 Frames: ``header.frame_id = <cam>/world`` (the SLAM world: the first camera pose's optical
-frame), ``child_frame_id = <cam>/camera_optical`` (x right, y down, z forward). Images are refused
+frame), or ``map`` once the camera relocalized into the service's saved map (``frame_id "map"``
+on the native message; docs/maps.md), ``child_frame_id = <cam>/camera_optical`` (x right, y down, z forward). Images are refused
 (and counted; ``…/status`` and the log say why) until that camera's CameraInfo arrived. The
 bridge translates the native messages the service publishes (:meth:`Ros2Bridge.forward`); it owns
 no SLAM state.
@@ -109,16 +110,11 @@ def scale_state_from_covariance(pose_covariance: np.ndarray) -> ScaleState:
 
 
 def depth_camera(camera: PinholeCamera | None, msg: KeyframeDepthMessage) -> PinholeCamera | None:
-    """The intrinsics of a keyframe's coarse depth grid (h, w): ``camera`` (the keyframe image's,
-    brought to ``image_width_px`` x ``image_height_px`` if it differs) resized to the grid, which
-    covers the whole image (pixel centres map to pixel centres,
-    :meth:`~metricslam.camera.PinholeCamera.resized`). None when the camera is unknown."""
+    """The intrinsics of a keyframe's coarse depth grid (:func:`metricslam.ros2.messages.depth_grid_camera`);
+    None when the camera is unknown."""
     if camera is None:
         return None
-    if (camera.width_px, camera.height_px) != (msg.image_width_px, msg.image_height_px):
-        camera = camera.resized(msg.image_width_px, msg.image_height_px)
-    h, w = msg.inv_depth_per_m.shape
-    return camera.resized(w, h)
+    return messages.depth_grid_camera(camera, (msg.image_width_px, msg.image_height_px), msg.inv_depth_per_m.shape)
 
 
 class RosPublisher:
@@ -156,6 +152,11 @@ class _CameraInput:
         self.refused = 0
         self.next_index = 0
         self.last_note_s = -1e9
+
+
+def parent_frame(camera_id: str, message: Message) -> str:
+    """``map`` for a message in the saved map's frame, else the camera's ``<tok>/world``."""
+    return "map" if getattr(message, "frame_id", "world") == "map" else frame_ids(camera_id)[0]
 
 
 class Ros2Bridge:
@@ -226,11 +227,11 @@ class Ros2Bridge:
                 out = self._camera_outputs(camera_id)
                 out["path"].put(messages.path(message.t_ns, message.T_world_cam,
                                               int(message.t_ns[-1]) if len(message.t_ns) else 0,
-                                              frame_ids(camera_id)[0]))
+                                              parent_frame(camera_id, message)))
             elif isinstance(message, LandmarksMessage):
                 out = self._camera_outputs(camera_id)
                 out["landmarks"].put(messages.point_cloud2(message.points_world, message.t_ns,
-                                                           frame_ids(camera_id)[0]))
+                                                           parent_frame(camera_id, message)))
             elif isinstance(message, KeyframeDepthMessage):
                 self._forward_keyframe_depth(camera_id, message)
         except Exception:  # noqa: BLE001 -- the ROS face must never disturb the native one
@@ -239,7 +240,7 @@ class Ros2Bridge:
     def _forward_pose(self, camera_id: str, msg: PoseMessage) -> None:
         if msg.state != TrackingState.TRACKING:
             return  # initializing / lost / invalid frames carry no pose of their own
-        world, cam = frame_ids(camera_id)
+        world, cam = parent_frame(camera_id, msg), frame_ids(camera_id)[1]
         self._camera_outputs(camera_id)["pose"].put(messages.pose_stamped(msg.T_world_cam, msg.t_ns, world))
         self._tf_publisher().put(messages.tf_message(msg.T_world_cam, msg.t_ns, world, cam))
 
@@ -261,7 +262,7 @@ class Ros2Bridge:
     def _forward_odometry(self, camera_id: str, msg: OdometryMessage) -> None:
         if msg.state != TrackingState.TRACKING:
             return
-        world, cam = frame_ids(camera_id)
+        world, cam = parent_frame(camera_id, msg), frame_ids(camera_id)[1]
         pose_cov, twist_cov = odometry_covariances(msg.scale_state, *self._sigmas)
         self._camera_outputs(camera_id)["odom"].put(messages.odometry(
             msg.T_world_cam, msg.t_ns, world, cam, pose_cov, twist_cov, twist_cam=msg.twist_cam))

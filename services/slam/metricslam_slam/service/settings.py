@@ -79,6 +79,9 @@ class SlamServiceSettings(BaseSettings):
             compose (``restart: unless-stopped``) or Kubernetes restarts it
             (:mod:`metricslam_slam.service.watchdog`); 0: never (the heartbeat file, if set, is
             still written).
+        map: a saved map (``metricslam run --save-map``) every camera session relocalizes into;
+            poses are in the map frame from then on (``frame_id "map"``). A map that cannot be
+            used is one error line and the service runs without it (docs/maps.md). None: no map.
         heartbeat_file: the watchdog rewrites this file after each check that found nothing hung;
             the Kubernetes liveness probe (``python -m metricslam_slam.supervisor.healthcheck
             --alive``) fails when it is stale. None: no file.
@@ -113,6 +116,7 @@ class SlamServiceSettings(BaseSettings):
     state_dir: Path | None = None
     hang_timeout_s: float = Field(default=120.0, ge=0)
     heartbeat_file: Path | None = None
+    map: Path | None = None
 
 
 def load_settings(**overrides: object) -> SlamServiceSettings:

@@ -9,7 +9,9 @@ drop-oldest queue + its own SlamSession). Publishes ``…/pose`` for every proce
 ``…/trajectory`` (whole current trajectory), ``metricslam/_service/health`` (JSON; its
 ``instance`` and ``started_t_ns`` change when the service restarts, which is how ``replay`` and
 ``poses`` tell a restart from a slow service) and ``metricslam/_service/reset/<camera_id>`` (the
-camera's next frame starts a fresh session; the query's payload, if any, is the reason given).
+camera's next frame starts a fresh session; the query's payload, if any, is the reason given)
+and, with a saved map (``SLAM_MAP``), ``metricslam/_service/map/save/<camera_id>``
+(:mod:`~metricslam_slam.service.service_map`).
 A :class:`~metricslam_slam.service.watchdog.Watchdog` ends the process when a camera or the
 status loop hangs (``hang_timeout_s``), so that compose or Kubernetes restarts it.
 Messages on keys that are not a valid camera id are counted (``unrouted``) and dropped.
@@ -36,6 +38,7 @@ from metricslam_slam.service.camera_worker import CameraWorker
 from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
 from metricslam_slam.service.memory import trim_heap
+from metricslam_slam.service.service_map import ServiceMap
 from metricslam_slam.service.sessions import SessionFactory, make_session_factory
 from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import ZenohAccess, open_client
@@ -85,6 +88,8 @@ class SlamService:
         self.depth_source = depth_source
         factory = session_factory or make_session_factory(
             settings.session_kind, self.config, depth_source)
+        self.map = ServiceMap(settings.map, self.config)  # never raises: a bad map is logged, not used
+        factory = self.map.wrap(factory, self._map_event)
         factory = factory if self.viewer is None else self.viewer.observing(factory)
         self._factory = factory
         self._maps: dict[str, MapPublisher] = {}
@@ -134,6 +139,8 @@ class SlamService:
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
             s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", self._on_reset_query),
+            s.declare_queryable(f"{keys.MAP_SAVE_KEY_PREFIX}/*",
+                                lambda q: self.map.on_save_query(q, self._cameras.get, self._serves)),
         ]
         if self.settings.ros2:
             from metricslam_slam.service.ros2_bridge import Ros2Bridge
@@ -201,7 +208,7 @@ class SlamService:
         worker = CameraWorker(
             camera_id, self._factory, lambda topic, msg: self._put(camera_id, topic, msg),
             self.config.queues.frames, self.settings.keyframe_images, self._on_estimate,
-            prior_poses=lambda: self._cameras.prior_poses(camera_id),
+            prior_poses=None if self.map.saved is not None else lambda: self._cameras.prior_poses(camera_id),
             on_session=lambda session: self._on_new_session(camera_id, session),
             on_event=lambda event, detail: self._cameras.publish_event(worker, event, detail),
             max_session_keyframes=self.settings.max_session_keyframes,
@@ -247,6 +254,11 @@ class SlamService:
         if ev.batch:
             trim_heap()
 
+    def _map_event(self, camera_id: str, event: str, detail: str) -> None:
+        worker = self._cameras.get(camera_id)
+        if worker is not None:
+            self._cameras.publish_event(worker, event, detail)
+
     def _drop_map(self, camera_id: str) -> None:
         old = self._maps.pop(camera_id, None)
         if old is not None:
@@ -283,14 +295,15 @@ class SlamService:
             query.reply_err(str(exc).encode())
             return
         worker = self._cameras.get(camera_id)
-        poses = worker.trajectory() if worker is not None else self._cameras.closed_trajectory(camera_id)
+        frame_id, poses = (worker.framed_trajectory() if worker is not None
+                           else (self._cameras.closed_frame_id(camera_id), self._cameras.closed_trajectory(camera_id)))
         if poses is None:
             if self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame"))):
                 query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())
             return  # another worker owns this camera: stay silent
         n = len(poses)
         message = TrajectoryMessage(
-            camera_id=camera_id, scale_established=bool(poses and poses[-1].scale_established),
+            camera_id=camera_id, scale_established=bool(poses and poses[-1].scale_established), frame_id=frame_id,
             frame_index=np.array([p.frame_index for p in poses], dtype=np.int64),
             t_ns=np.array([p.t_ns for p in poses], dtype=np.int64),
             T_world_cam=np.array([p.T_world_cam for p in poses], dtype=np.float64).reshape(n, 4, 4),
@@ -327,7 +340,7 @@ class SlamService:
                 "cameras": cameras, "unrouted": self.unrouted, "depth_url": depth_url,
                 "depth_reachable": reachable, "depth_outages": outages,
                 "ros2": None if self.ros2 is None else self.ros2.stats(), "instance": self.instance,
-                "started_t_ns": self.started_t_ns, **self._cameras.stats()}
+                "started_t_ns": self.started_t_ns, "map": self.map.health(), **self._cameras.stats()}
 
     # -- depth link --------------------------------------------------------------------------
     def _depth_link(self) -> tuple[str | None, bool | None, str | None, int]:

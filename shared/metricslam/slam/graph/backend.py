@@ -71,6 +71,7 @@ class GlobalBackend:
                                             self.config.scale_sigma_log, self.config.scale_huber_k)
             self.scale_health.attach(self.events)
         self._scale_sigma_log: float | None = None  # the newest solved keyframe's, last read
+        self._solved_kf_id: int | None = None  # the keyframe of the newest solve handed over
         #: leave the loop detector's features open at :meth:`close` (a map is saved from them
         #: afterwards; the saver closes the detector)
         self.keep_loop_database = False
@@ -143,6 +144,11 @@ class GlobalBackend:
             self._counters["corrections"] += 1
         self.events.emit(WarpApplied(S_new_vo, sim3.scale(S_new_vo), epoch))
         return S_new_vo
+
+    def exclusive(self) -> threading.RLock:
+        """Hold the estimator (``with backend.exclusive(): ...``): no solve or loop detection
+        runs meanwhile. Saving a map mid-session reads its keyframes and loop database so."""
+        return self._lock
 
     def optimized_keyframe_poses(self) -> dict[int, np.ndarray]:
         """The keyframe poses of the newest solve that has finished (frame index -> (4, 4)).
@@ -241,18 +247,24 @@ class GlobalBackend:
 
     def _ground_stats(self) -> dict:
         meter = self.ground_meter
+        timing = {f"ground_{name}_mean": getattr(meter, attr).mean_ms  # (a test's fake meter has none)
+                  for name, attr in (("ms", "wall_ms"), ("cpu_ms", "cpu_ms")) if hasattr(meter, attr)}
         return {"ground_factors": self.estimator.n_ground_factors, **meter.counts,
-                "ground_rejected_reasons": dict(meter.reasons)}
+                "ground_rejected_reasons": dict(meter.reasons), **timing}
 
     def scale_sigma_log(self) -> float | None:
-        """σ of the newest solved keyframe's log-scale (ISAM2's marginal); while a solve runs, the
-        last value read (a status publisher must not wait on a solve)."""
+        """σ of the newest solved keyframe's log-scale (ISAM2's marginal); while a solve runs, or
+        while the newest keyframe waits for its first solve, the last value read (a status
+        publisher must not wait on a solve)."""
         if not self._lock.acquire(blocking=False):
             return self._scale_sigma_log
         try:
-            newest = self.estimator.newest_kf_id
-            if newest is not None:
-                self._scale_sigma_log = self.estimator.graph.scale_sigma_log(newest)
+            graph = self.estimator.graph
+            for kf_id in (self.estimator.newest_kf_id, self._solved_kf_id):
+                sigma = graph.scale_sigma_log(kf_id) if kf_id is not None else None
+                if sigma is not None:
+                    self._scale_sigma_log = sigma
+                    break
         finally:
             self._lock.release()
         return self._scale_sigma_log
@@ -262,6 +274,7 @@ class GlobalBackend:
         """After an estimator call (caller holds ``_lock``): offer its newest solved pose."""
         solved, self.estimator.solved = self.estimator.solved, None
         if solved is not None:
+            self._solved_kf_id = self.estimator.newest_kf_id
             with self._corr_lock:
                 self._pending_correction = solved
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from metricslam.errors import ConfigError
 from metricslam.slam.ground.consistency import HeightConsistencyConfig
@@ -22,6 +22,10 @@ ScaleSource = Literal["learned", "ground"]
 
 #: the largest mounting height accepted (m): above it the value is almost surely a unit mistake
 MAX_MOUNT_HEIGHT_M = 10.0
+#: validation-context key: the values are ONE layer of a configuration (file, environment,
+#: command line); rules that need fields of other layers wait for the combination
+#: (:func:`metricslam.slam.config_file.load_system_config`)
+LAYER_CONTEXT = "one_layer"
 
 
 def check_mount_height(h_mount_m: float | None, where: str = "mount height") -> float | None:
@@ -32,10 +36,11 @@ def check_mount_height(h_mount_m: float | None, where: str = "mount height") -> 
     try:
         h = float(h_mount_m)
     except (TypeError, ValueError):
-        raise ConfigError(f"{where}: expected metres above the road as a number, got {h_mount_m!r}") from None
+        raise ConfigError(f"{where + ': ' if where else ''}expected metres above the road as a number, got "
+                          f"{h_mount_m!r}") from None
     if not math.isfinite(h) or h <= 0 or h > MAX_MOUNT_HEIGHT_M:
-        raise ConfigError(f"{where}: {h_mount_m!r} m is not a camera height above the road; give the "
-                          f"optical centre's height in metres, 0 < h <= {MAX_MOUNT_HEIGHT_M:g} "
+        raise ConfigError(f"{where + ': ' if where else ''}{h_mount_m!r} m is not a camera height above the "
+                          f"road; give the optical centre's height in metres, 0 < h <= {MAX_MOUNT_HEIGHT_M:g} "
                           f"(KITTI's cam 0: 1.65)")
     return h
 
@@ -108,15 +113,16 @@ class ScaleConfig(BaseModel):
     @classmethod
     def _height(cls, value: float | None) -> float | None:
         try:
-            return check_mount_height(value, "scale.mount_height_m")
+            return check_mount_height(value, "")  # pydantic names the field and the layer
         except ConfigError as exc:
             raise ValueError(str(exc)) from None
 
     @model_validator(mode="after")
-    def _ground_needs_height(self) -> "ScaleConfig":
+    def _ground_needs_height(self, info: ValidationInfo) -> "ScaleConfig":
         if not self.sources:
             raise ValueError("scale.sources is empty; use learned, ground or both")
-        if "ground" in self.sources and self.mount_height_m is None:
+        one_layer = bool(info.context and info.context.get(LAYER_CONTEXT))  # the height may be in another
+        if "ground" in self.sources and self.mount_height_m is None and not one_layer:
             raise ValueError("scale source 'ground' needs the camera's mounting height: give "
                              "--mount-height M, mount_height_m in the calibration file or "
                              "scale.mount_height_m in the config")

@@ -8,8 +8,10 @@ measurements (metres per keyframe VO unit) and their disagreement ``log(s_learne
 When the median disagreement over the last ``ScaleHealthConfig.keyframes`` keyframes that have
 both exceeds ``max_disagreement_log`` (a median: one keyframe's network error, ~6 % sd per image,
 must not flip it), it logs one warning and raises the ``warning`` flag of
-:meth:`ScaleHealth.snapshot` (cleared again once the median is back within half the bound). Thread-safe (events arrive on the
-depth worker and the graph worker).
+:meth:`ScaleHealth.snapshot` (cleared again once the median is back within half the bound). After each measurement it
+stores, it emits the keyframe's record as :class:`~metricslam.slam.events.ScaleHealthUpdated` on
+the bus it is attached to (the recordings log it). Thread-safe (events arrive on the depth
+worker and the graph worker).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import threading
 
 import numpy as np
 
-from metricslam.slam.events import GroundScaleMeasured, ScaleMeasured
+from metricslam.slam.events import GroundScaleMeasured, ScaleHealthUpdated, ScaleMeasured
 from metricslam.slam.graph.scale_factor import robust_log_scale
 from metricslam.slam.ground.config import ScaleHealthConfig
 
@@ -45,11 +47,15 @@ class ScaleHealth:
         self._recent: collections.deque = collections.deque(maxlen=self.config.window)  # (kf, log d)
         self._done: set[int] = set()
         self._last: collections.deque = collections.deque(maxlen=self.config.keyframes)
+        self._learned_recent: collections.deque = collections.deque(maxlen=self.config.window)  # log s
         self.warning = False
         self.warnings_issued = 0
+        self._events = None
 
     def attach(self, events: object) -> None:
-        """Subscribe to a back end's :class:`~metricslam.slam.events.EventBus`."""
+        """Subscribe to a back end's :class:`~metricslam.slam.events.EventBus` (and emit the
+        per-keyframe records on it)."""
+        self._events = events
         events.subscribe(self.on_event, ScaleMeasured, GroundScaleMeasured)
 
     def on_event(self, ev: object) -> None:
@@ -62,9 +68,24 @@ class ScaleHealth:
             value, target = float(ev.scale), self._ground
         else:
             return
+        kf_id = int(ev.kf_id)
         with self._lock:
-            target[int(ev.kf_id)] = value
-            self._update(int(ev.kf_id))
+            target[kf_id] = value
+            if target is self._learned:
+                self._learned_recent.append(float(np.log(value)))
+            self._update(kf_id)
+            record = self._record(kf_id, int(ev.frame_index), int(ev.t_ns))
+        if self._events is not None:
+            self._events.emit(record)
+
+    def _record(self, kf_id: int, frame_index: int, t_ns: int) -> ScaleHealthUpdated:
+        """The keyframe's :class:`ScaleHealthUpdated` (caller holds ``_lock``)."""
+        nan = float("nan")
+        learned, ground = self._learned.get(kf_id, nan), self._ground.get(kf_id, nan)
+        both = np.isfinite(learned) and np.isfinite(ground)
+        spread = float(np.std(self._learned_recent)) if len(self._learned_recent) >= 2 else nan
+        return ScaleHealthUpdated(kf_id, frame_index, t_ns, float(learned), float(ground),
+                                  float(np.log(learned / ground)) if both else nan, bool(self.warning), spread)
 
     def _update(self, kf_id: int) -> None:
         if kf_id in self._done or kf_id not in self._learned or kf_id not in self._ground:

@@ -1,6 +1,8 @@
 """``GroundScaleMeter``: per keyframe, the road-plane scale measurement ``s = h_mount_m / h_vo``.
 
-It keeps the previous marginalized keyframe of each tracking segment and runs the dense
+It keeps the previous marginalized keyframe of each tracking segment — its image already
+prepared for the aligner (:class:`~.road_image.RoadImage`: each image is prepared once, as the
+current image of one measurement and the previous one of the next) — and runs the dense
 road-height estimator (:mod:`.height`) between it and the new one, using the VO's relative pose
 ``T_prevkf_kf`` (keyframe VO units). The answer is a
 :class:`~metricslam.slam.events.GroundScaleMeasured` event; accepted ones become unary
@@ -11,6 +13,7 @@ Single-threaded: the back end calls it in keyframe order from one thread.
 from __future__ import annotations
 
 import re
+import time
 
 import numpy as np
 
@@ -18,6 +21,8 @@ from metricslam.slam.events import GroundScaleMeasured
 from metricslam.slam.ground.config import ScaleConfig
 from metricslam.slam.ground.consistency import HeightConsistency, ScaleOf
 from metricslam.slam.ground.height import RoadHeightEstimator
+from metricslam.slam.ground.road_image import RoadImage
+from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import MarginalizedKeyframe
 
 
@@ -35,7 +40,9 @@ class GroundScaleMeter:
         self.h_mount_m = float(config.mount_height_m)
         self._estimator = RoadHeightEstimator(config.ground)
         self._consistency = HeightConsistency(config.consistency)
-        self._prev: dict[int, tuple[int, np.ndarray]] = {}  # segment -> (frame_index, image)
+        self._prev: dict[int, tuple[int, RoadImage]] = {}  # segment -> (frame_index, prepared image)
+        #: wall and thread-CPU ms of one :meth:`measure` (image preparation and alignment)
+        self.wall_ms, self.cpu_ms = TimingSummary(), TimingSummary()
         #: measurements made and accepted, and why the others were not (run statistics)
         self.counts: dict[str, int] = {"ground_measured": 0, "ground_accepted": 0}
         self.reasons: dict[str, int] = {}
@@ -45,10 +52,19 @@ class GroundScaleMeter:
         the road gave none: a segment's first keyframe, no road, too little motion, a height far
         from the recent ones, …). ``scale_of``: the graph's scale of a keyframe now (m per its VO
         unit), for the consistency gate (:mod:`.consistency`; None: heights compared as given)."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        try:
+            return self._measure(kf, scale_of)
+        finally:
+            self.wall_ms.append(1e3 * (time.perf_counter() - t0))
+            self.cpu_ms.append(1e3 * (time.thread_time() - c0))
+
+    def _measure(self, kf: MarginalizedKeyframe, scale_of: ScaleOf | None) -> GroundScaleMeasured:
         seg = int(kf.segment_id)
         prev = self._prev.get(seg)
-        image = np.asarray(kf.image)
-        self._prev[seg] = (int(kf.frame_index), image)
+        image = self._estimator.prepare(np.asarray(kf.image))
+        # only the newest segment's (a prepared image is ~16x the raw one; segments never resume)
+        self._prev = {seg: (int(kf.frame_index), image)}
         self.counts["ground_measured"] += 1
         base = dict(kf_id=int(kf.kf_id), frame_index=int(kf.frame_index), t_ns=int(kf.t_ns))
         if prev is None or kf.T_prevkf_kf is None:
@@ -57,7 +73,7 @@ class GroundScaleMeter:
         base.update(prev_frame_index=prev[0], step_vo=float(np.linalg.norm(T_prev_cur[:3, 3])))
         if prev[1].shape != image.shape:
             return self._rejected(base, "the previous keyframe image has another size")
-        res = self._estimator.estimate(prev[1], image, kf.camera.K, T_prev_cur)
+        res = self._estimator.estimate_prepared(prev[1], image, kf.camera.K, T_prev_cur)
         base.update(height_vo=float(res.height), inlier_fraction=float(res.inlier_fraction),
                     normal_angle_rad=float(res.normal_angle_rad))
         if not res.accepted:

@@ -10,6 +10,8 @@ SLAM system, metres with a metric pose).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from metricslam.errors import ScaleError
@@ -22,15 +24,32 @@ def nominal_down(pitch_rad: float = 0.0) -> np.ndarray:
 
 
 def tilt_normal(n0: np.ndarray, tilt_rad: np.ndarray) -> np.ndarray:
-    """(3,) ``n0`` rotated by ``Exp([tilt_x, 0, tilt_z])`` (pitch about x, roll about z)."""
+    """(3,) ``n0`` rotated by ``Exp([tilt_x, 0, tilt_z])`` (pitch about x, roll about z).
+
+    Scalar arithmetic (Rodrigues' formula written out): the road aligner calls it a hundred
+    times per keyframe, and ``np.cross`` on 3-vectors costs more than the whole rotation."""
     wx, wz = float(tilt_rad[0]), float(tilt_rad[1])
-    w = np.array([wx, 0.0, wz])
-    th = float(np.linalg.norm(w))
+    a, b, c = (float(v) for v in n0)
+    th = math.hypot(wx, wz)
     if th < 1e-12:
-        return np.asarray(n0, dtype=float).copy()
-    k = w / th
-    n0 = np.asarray(n0, dtype=float)
-    return n0 * np.cos(th) + np.cross(k, n0) * np.sin(th) + k * float(k @ n0) * (1 - np.cos(th))
+        return np.array([a, b, c])
+    kx, kz = wx / th, wz / th
+    cos_t, sin_t = math.cos(th), math.sin(th)
+    k_dot_n = (kx * a + kz * c) * (1.0 - cos_t)
+    # k × n0 with k = (kx, 0, kz)
+    return np.array([a * cos_t - kz * b * sin_t + kx * k_dot_n,
+                     b * cos_t + (kz * a - kx * c) * sin_t,
+                     c * cos_t + kx * b * sin_t + kz * k_dot_n])
+
+
+def tilt_normal_derivatives(n0: np.ndarray, tilt_rad: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """(3, 3) columns ``[n, ∂n/∂tilt_x, ∂n/∂tilt_z]`` at ``tilt_rad`` (central differences,
+    step ``eps`` rad; checked against the warp's finite differences in tests)."""
+    tx, tz = float(tilt_rad[0]), float(tilt_rad[1])
+    cols = [tilt_normal(n0, (tx, tz)),
+            (tilt_normal(n0, (tx + eps, tz)) - tilt_normal(n0, (tx - eps, tz))) / (2 * eps),
+            (tilt_normal(n0, (tx, tz + eps)) - tilt_normal(n0, (tx, tz - eps))) / (2 * eps)]
+    return np.stack(cols, axis=1)
 
 
 def road_rays(K: np.ndarray, width_px: int, height_px: int, n_down: np.ndarray,

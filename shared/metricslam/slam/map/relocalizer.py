@@ -92,6 +92,9 @@ class Relocalizer:
         self._rng = np.random.default_rng(seed)
         self._prev_bow: np.ndarray | None = None
         self.matches: list[RelocMatch] = []
+        #: keyframe frame index -> its bag-of-words row (K,) in the MAP's vocabulary (a merged map
+        #: indexes the session's keyframes with them, :mod:`metricslam.slam.map.merge`)
+        self.bow_by_frame: dict[int, np.ndarray] = {}
         self.first_frame: int | None = None
         self.n_queries = 0
         self.query_ms: list[float] = []  # wall time of each query (retrieval + verification)
@@ -133,6 +136,7 @@ class Relocalizer:
         cfg = self.config
         gray = to_gray_u8(kf.image)
         v = self._vocab.bow(retrieval_descriptors(self._orb, gray, cfg.image_scale))
+        self.bow_by_frame[int(kf.frame_index)] = np.asarray(v, np.float32)
         ref = None if self._prev_bow is None else float(self._prev_bow @ v)
         self._prev_bow = v
         if not len(self._ids) or not np.any(v):
@@ -170,31 +174,56 @@ class Relocalizer:
                                          np.vstack([pts, lm.points]))
 
     def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray], gate_m: float = 2.0,
-                    gate_rad: float = 0.1, gate_log_scale: float = 0.1) -> tuple[np.ndarray | None, int, int]:
+                    gate_rad: float = 0.1, gate_log_scale: float = 0.1,
+                    metric_world: bool = False) -> tuple[np.ndarray | None, int, int]:
         """``(S_map_world (4, 4) or None, matches used, matches rejected)`` from every match
         whose session keyframe is in ``S_world_kf_by_frame`` (the back end's
         ``optimized_keyframe_poses()``): the medoid's Sim(3), refined by the tangent mean of
-        the matches within the gates of it."""
-        cands = []
+        the matches within the gates of it.
+
+        ``metric_world``: the session's world is metric already (learned scale established).
+        Each match's scale then comes from the session's graph (``S_world_kf``'s, which fuses
+        every scale factor) instead of its one keyframe's network depth (±20 % from one view,
+        measured on the rendered revisit), so ``S_map_world`` is rigid: the map is metric, so
+        is the session. Otherwise the network-depth scale carries the map's metres into the
+        session (its first relocalized frame inherits metric scale)."""
+        cands = [c for _, c in self.candidates(S_world_kf_by_frame, metric_world)]
+        if not cands:
+            return None, 0, len(self.matches)
+        gates = (gate_m, gate_rad, gate_log_scale)
+        support = [sum(close(a, b, *gates) for b in cands) for a in cands]
+        medoid = cands[int(np.argmax(support))]
+        kept = [c for c in cands if close(medoid, c, *gates)]
+        mean = np.mean([sim3.local(medoid, c) for c in kept], axis=0)
+        return sim3.retract(medoid, mean), len(kept), len(self.matches) - len(kept)
+
+    def measured_S_mapkf_kf(self, m: RelocMatch, S_world_kf: np.ndarray, metric_world: bool) -> np.ndarray:
+        """The match's ``S_mapkf_kf`` (4, 4), its scale the session graph's when ``metric_world``
+        (:meth:`S_map_world`)."""
+        if not metric_world:
+            return m.S_mapkf_kf
+        R, t, _ = sim3.split(m.S_mapkf_kf)
+        return sim3.from_rts(R, t, sim3.scale(S_world_kf))
+
+    def candidates(self, S_world_kf_by_frame: dict[int, np.ndarray],
+                   metric_world: bool = False) -> list[tuple[RelocMatch, np.ndarray]]:
+        """``(match, S_map_world it implies)`` for every match whose keyframe is in the graph."""
+        out = []
         for m in self.matches:
             S_world_kf = S_world_kf_by_frame.get(m.kf_frame)
             if S_world_kf is not None:
                 T = sim3.from_se3(self._T_map_kf[m.map_kf_id])
-                cands.append(T @ m.S_mapkf_kf @ sim3.inverse(S_world_kf))
-        if not cands:
-            return None, 0, len(self.matches)
+                out.append((m, T @ self.measured_S_mapkf_kf(m, S_world_kf, metric_world) @ sim3.inverse(S_world_kf)))
+        return out
 
-        def close(a, b) -> bool:
-            Ra, ta, sa = sim3.split(a)
-            Rb, tb, sb = sim3.split(b)
-            return (np.linalg.norm(ta - tb) < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
-                    and abs(np.log(sa / sb)) < gate_log_scale)
 
-        support = [sum(close(a, b) for b in cands) for a in cands]
-        medoid = cands[int(np.argmax(support))]
-        kept = [c for c in cands if close(medoid, c)]
-        mean = np.mean([sim3.local(medoid, c) for c in kept], axis=0)
-        return sim3.retract(medoid, mean), len(kept), len(self.matches) - len(kept)
+def close(a: np.ndarray, b: np.ndarray, gate_m: float = 2.0, gate_rad: float = 0.1,
+          gate_log_scale: float = 0.1) -> bool:
+    """Two Sim(3) (4, 4) within ``gate_m`` metres, ``gate_rad`` and ``gate_log_scale`` of each other."""
+    Ra, ta, sa = sim3.split(a)
+    Rb, tb, sb = sim3.split(b)
+    return (np.linalg.norm(ta - tb) < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
+            and abs(np.log(sa / sb)) < gate_log_scale)
 
 
 def to_map_frame(S_map_world: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
