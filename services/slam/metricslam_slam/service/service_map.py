@@ -43,6 +43,19 @@ SessionFactory = Callable[[str, PinholeCamera], SlamSession]
 EventSink = Callable[[str, str, str], None]
 
 
+
+def camera_of_query(query) -> str | None:
+    """The camera id that ends a ``…/<camera_id>`` query's key (the service's per-camera
+    queryables); None after answering a malformed one with its one-line error."""
+    camera_id = str(query.key_expr).rsplit("/", 1)[-1]
+    try:
+        keys.check_camera_id(camera_id)
+    except CodecError as exc:
+        query.reply_err(str(exc).encode())
+        return None
+    return camera_id
+
+
 class ServiceMap:
     """The map a SLAM service localizes its cameras in (module docstring).
 
@@ -97,11 +110,8 @@ class ServiceMap:
     def on_save_query(self, query, worker_of: Callable[[str], object], serves: Callable[[str], bool]) -> None:
         """``metricslam/_service/map/save/<camera_id>`` (payload: the folder): answers the JSON of
         :meth:`save` or one error line; a service that does not serve the camera stays silent."""
-        camera_id = str(query.key_expr).rsplit("/", 1)[-1]
-        try:
-            keys.check_camera_id(camera_id)
-        except CodecError as exc:
-            query.reply_err(str(exc).encode())
+        camera_id = camera_of_query(query)
+        if camera_id is None:
             return
         if not serves(camera_id):
             return

@@ -38,7 +38,7 @@ from metricslam_slam.service.camera_worker import CameraWorker
 from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
 from metricslam_slam.service.memory import trim_heap
-from metricslam_slam.service.service_map import ServiceMap
+from metricslam_slam.service.service_map import ServiceMap, camera_of_query
 from metricslam_slam.service.sessions import SessionFactory, make_session_factory
 from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import ZenohAccess, open_client
@@ -314,11 +314,8 @@ class SlamService:
         """``metricslam/_service/reset/<camera_id>``: the camera's next frame starts a fresh
         session. Answers JSON ``{"camera_id", "earlier_poses", "instance"}``; a service that does
         not serve the camera (``frame_key_expr``) stays silent."""
-        camera_id = str(query.key_expr).rsplit("/", 1)[-1]
-        try:
-            keys.check_camera_id(camera_id)
-        except CodecError as exc:
-            query.reply_err(str(exc).encode())
+        camera_id = camera_of_query(query)
+        if camera_id is None:
             return
         if not self._serves(camera_id) or self._stopped.is_set():
             return
