@@ -154,11 +154,17 @@ def start_slam(stack: Stack, image: str, name: str, env: dict[str, str], timeout
                           timeout, f"{name}: HEALTHCHECK", stack, period=2.0)
 
 
-def replay(stack: Stack, seq: Path, endpoint: str, frames: int, timeout: float, camera: str, name: str) -> dict:
+def replay(stack: Stack, seq: Path, endpoint: str, frames: int, timeout: float, camera: str, name: str,
+           trajectory: bool = True) -> dict:
+    """Replay ``frames`` frames of ``seq`` into the stack and record them: the live stream's pose
+    states and, with ``trajectory`` (a run long enough for metric scale), the optimized
+    trajectory's path and scale error against the KITTI poses."""
     cli = str(Path(sys.executable).parent / "metricslam")
-    out = stack.workdir / f"{name}_poses.txt"
-    poses = stack.start(f"{name}-poses", [cli, "poses", "--zenoh-endpoint", endpoint, "--out", str(out),
-                                          "--frames", str(frames), "--timeout", str(int(timeout)), "--camera-id", camera])
+    live, out = stack.workdir / f"{name}_poses.txt", stack.workdir / f"{name}_trajectory.txt"
+    recorder = [cli, "poses", "--zenoh-endpoint", endpoint, "--frames", str(frames), "--timeout", str(int(timeout)),
+                "--camera-id", camera]
+    poses = stack.start(f"{name}-poses", [*recorder, "--out", str(live)])  # the pose states of the live stream
+    optimized = stack.start(f"{name}-trajectory", [*recorder, "--out", str(out), "--trajectory"]) if trajectory else None
     time.sleep(3.0)  # the recorder's subscription is declared before the first frame
     t0 = time.monotonic()
     code, text = run([cli, "replay", str(seq), "--zenoh-endpoint", endpoint, "--max-frames", str(frames),
@@ -167,19 +173,31 @@ def replay(stack: Stack, seq: Path, endpoint: str, frames: int, timeout: float, 
     replay_s = time.monotonic() - t0
     try:
         poses.wait(60)
+        if optimized is not None:
+            optimized.wait(60)
     except subprocess.TimeoutExpired:
         raise SmokeError(f"{name}: metricslam poses did not finish 60 s after the replay") from None
     summary = stack.log_tail(f"{name}-poses", 40)
     states = dict((k, int(v)) for v, k in re.findall(r"(\d+) (unscaled|provisional|metric)", summary))
-    result = {"frames": frames, "replay_rc": code, "poses_rc": poses.returncode, "replay_s": round(replay_s, 1),
+    result = {"frames": frames, "replay_rc": code, "poses_rc": max(poses.returncode, optimized.returncode if optimized else 0),
+              "replay_s": round(replay_s, 1),
               "unscaled": states.get("unscaled"), "provisional": states.get("provisional"), "metric": states.get("metric")}
-    if code != 0 or poses.returncode != 0 or not states.get("metric", 0) + states.get("provisional", 0):
+    if code != 0 or result["poses_rc"] != 0 or not states.get("metric", 0) + states.get("provisional", 0):
         raise SmokeError(f"{name}: replay exit {code}, poses exit {poses.returncode}:\n"
                          f"{stack.log_tail(f'{name}-replay')}\n{summary}")
     gt = seq.parent.parent / "poses" / f"{seq.name}.txt"
-    if out.is_file() and gt.is_file():
-        est, ref = np.loadtxt(out)[states.get("unscaled", 0):], np.loadtxt(gt)[:frames][states.get("unscaled", 0):]
+    if trajectory and out.is_file() and gt.is_file():
+        from metricslam.evaluation.evaluator import evaluate_poses
+        from metricslam.trajectory.io import read_kitti_poses
+
+        skip = states.get("unscaled", 0)  # placeholder lines of frames without a metric pose
+        est, ref = np.loadtxt(out)[skip:], np.loadtxt(gt)[:frames][skip:]
         result["path_m"], result["gt_path_m"] = round(path_length(est), 1), round(path_length(ref), 1)
+        T_est, T_gt = read_kitti_poses(out)[skip:], read_kitti_poses(gt)[:frames][skip:]
+        if len(T_est) == len(T_gt) >= 3:
+            ev = evaluate_poses(T_gt, T_est, name=seq.name)
+            error = ev.result.scale_error_pct
+            result["scale_error_pct"] = None if error is None else round(error, 1)
     return result
 
 
@@ -223,7 +241,8 @@ def smoke_slam(stack: Stack, image: str, seq: Path, depth_port: int, args: argpa
             raise SmokeError(f"slam image with SLAM_ROS2=1 exited {proc.returncode} without a clear message:\n{tail}")
     else:
         ros2 = {"outcome": "started", "ready_s": round(ready_s, 1),
-                **replay(stack, seq, endpoint, min(frames, 10), args.replay_timeout, "ros2cam", "slam-ros2")}
+                **replay(stack, seq, endpoint, min(frames, 10), args.replay_timeout, "ros2cam", "slam-ros2",
+                         trajectory=False)}
         ros2["ros2_topics"] = ros2_topics(endpoint)
         ros2["passed"] = bool(ros2["ros2_topics"])
         if not ros2["passed"]:
@@ -333,7 +352,9 @@ def images_smoke_block(data: dict | None = None) -> str:
         if x and "frames" in x:
             said.append(f"{what} (router: the SLAM image's): HEALTHCHECK passes after {x['ready_s']} s; {x['frames']} frames "
                         f"replayed in {x['replay_s']} s → {x['metric']} metric, {x['provisional']} provisional, "
-                        f"{x['unscaled']} unscaled poses, path {x.get('path_m')} m (ground truth {x.get('gt_path_m')} m)"
+                        f"{x['unscaled']} unscaled poses"
+                        + (f"; the optimized trajectory (`poses --trajectory`): path {x['path_m']} m (ground truth "
+                           f"{x.get('gt_path_m')} m), scale error {x.get('scale_error_pct')} %" if "path_m" in x else "")
                         + (f"; ROS 2 topics announced: {', '.join(f'`{t}`' for t in x['ros2_topics'])}." if x.get("ros2_topics") else "."))
         elif x:
             said.append(f"{what}: {x['outcome']}, exit {x.get('exit')}: `{' '.join(x.get('message', []))}`.")
