@@ -40,7 +40,9 @@ class GroundScaleMeter:
         self.h_mount_m = float(config.mount_height_m)
         self._estimator = RoadHeightEstimator(config.ground)
         self._consistency = HeightConsistency(config.consistency)
-        self._prev: dict[int, tuple[int, RoadImage]] = {}  # segment -> (frame_index, prepared image)
+        #: (segment, frame_index, prepared image) of the newest segment's previous keyframe: only
+        #: the newest segment's (a prepared image is ~16x the raw one; segments never resume)
+        self._prev: tuple[int, int, RoadImage] | None = None
         #: wall and thread-CPU ms of one :meth:`measure` (image preparation and alignment)
         self.wall_ms, self.cpu_ms = TimingSummary(), TimingSummary()
         #: measurements made and accepted, and why the others were not (run statistics)
@@ -61,10 +63,9 @@ class GroundScaleMeter:
 
     def _measure(self, kf: MarginalizedKeyframe, scale_of: ScaleOf | None) -> GroundScaleMeasured:
         seg = int(kf.segment_id)
-        prev = self._prev.get(seg)
+        prev = self._prev[1:] if self._prev is not None and self._prev[0] == seg else None
         image = self._estimator.prepare(np.asarray(kf.image))
-        # only the newest segment's (a prepared image is ~16x the raw one; segments never resume)
-        self._prev = {seg: (int(kf.frame_index), image)}
+        self._prev = (seg, int(kf.frame_index), image)
         self.counts["ground_measured"] += 1
         base = dict(kf_id=int(kf.kf_id), frame_index=int(kf.frame_index), t_ns=int(kf.t_ns))
         if prev is None or kf.T_prevkf_kf is None:

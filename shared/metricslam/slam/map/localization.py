@@ -215,7 +215,7 @@ class MapFrameSession:
                       f"keyframe {m.kf_frame} = map keyframe {m.map_kf_id}, {m.n_inliers} inliers; "
                       f"scale {float(np.cbrt(np.linalg.det(S[:3, :3]))):.4f})")
             log.info(detail)
-            self._S = S
+            self._S = S  # before the callback: it may read frame_id
             if self._on_relocalized is not None:
                 self._on_relocalized(int(est.frame_index), detail)
         self._S = S if S is not None else self._S

@@ -44,6 +44,9 @@ from metricslam.slam.map.format import SavedMap
 
 log = logging.getLogger(__name__)
 
+#: two matches agree (:func:`close`) within these: metres, radians, |log scale|
+GATE_M, GATE_RAD, GATE_LOG_SCALE = 2.0, 0.1, 0.1
+
 
 @dataclass(frozen=True)
 class RelocMatch:
@@ -173,8 +176,8 @@ class Relocalizer:
         return corner_mod.CornerFeatures(np.vstack([uv, lm.uv_px]), np.vstack([desc, lm.descriptors]),
                                          np.vstack([pts, lm.points]))
 
-    def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray], gate_m: float = 2.0,
-                    gate_rad: float = 0.1, gate_log_scale: float = 0.1,
+    def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray], gate_m: float = GATE_M,
+                    gate_rad: float = GATE_RAD, gate_log_scale: float = GATE_LOG_SCALE,
                     metric_world: bool = False) -> tuple[np.ndarray | None, int, int]:
         """``(S_map_world (4, 4) or None, matches used, matches rejected)`` from every match
         whose session keyframe is in ``S_world_kf_by_frame`` (the back end's
@@ -217,8 +220,8 @@ class Relocalizer:
         return out
 
 
-def close(a: np.ndarray, b: np.ndarray, gate_m: float = 2.0, gate_rad: float = 0.1,
-          gate_log_scale: float = 0.1) -> bool:
+def close(a: np.ndarray, b: np.ndarray, gate_m: float = GATE_M, gate_rad: float = GATE_RAD,
+          gate_log_scale: float = GATE_LOG_SCALE) -> bool:
     """Two Sim(3) (4, 4) within ``gate_m`` metres, ``gate_rad`` and ``gate_log_scale`` of each other."""
     Ra, ta, sa = sim3.split(a)
     Rb, tb, sb = sim3.split(b)
