@@ -200,8 +200,23 @@ class KeyframeMarginalized:
     frame_index_now: int
 
 
+@dataclass(frozen=True)
+class KeyframeSettled:
+    """A keyframe still in the VO window that a newer keyframe has observed: ``keyframe`` is a
+    :class:`~metricslam.slam.types.MarginalizedKeyframe` snapshot of it (``T_vo_kf`` and the
+    landmarks' inverse depths in the VO units of that moment, ``T_prevkf_kf`` None), taken while
+    processing frame ``frame_index_now`` after ``warp_generation`` warps had been applied to the VO
+    (:meth:`~metricslam.slam.vo.window.SlidingWindow.warp_since`). Emitted once per keyframe on the
+    tracking thread, only while someone subscribes (relocalization into a saved map queries it
+    early, long before the keyframe is marginalized)."""
+
+    keyframe: object
+    frame_index_now: int
+    warp_generation: int
+
+
 Event = (ScaleMeasured | GroundScaleMeasured | ScaleHealthUpdated | Solved | LoopAccepted | WarpApplied
-         | InitialScaleApplied | KeyframeMarginalized)
+         | InitialScaleApplied | KeyframeMarginalized | KeyframeSettled)
 
 
 class EventBus:
@@ -219,6 +234,11 @@ class EventBus:
     def unsubscribe(self, callback: Callable[[Event], None]) -> None:
         with self._lock:
             self._subscribers = [s for s in self._subscribers if s[0] is not callback]
+
+    def wants(self, event_type: type) -> bool:
+        """Whether any subscriber receives events of ``event_type`` (skip building them if not)."""
+        with self._lock:
+            return any(not types or issubclass(event_type, types) for _, types in self._subscribers)
 
     def emit(self, event: Event) -> None:
         with self._lock:

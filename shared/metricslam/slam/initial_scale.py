@@ -102,7 +102,7 @@ def measure_initial_scale(depth_source: object, image: np.ndarray, camera: Pinho
         return InitialScale(frame_index, None, len(xi), 0.0,
                             f"{len(xi)} initial landmarks < min_landmarks {config.min_landmarks}")
     t0 = time.perf_counter()
-    answer, error = _ask_with_timeout(depth_source, image, camera, config.timeout_s)
+    answer, error = ask_depth(depth_source, image, camera, config.timeout_s)
     wait_ms = 1e3 * (time.perf_counter() - t0)
     if answer is None:
         return InitialScale(frame_index, None, 0, wait_ms, error)
@@ -121,10 +121,11 @@ def measure_initial_scale(depth_source: object, image: np.ndarray, camera: Pinho
     return InitialScale(frame_index, float(np.exp(log_s)), int(scales.size), wait_ms)
 
 
-def _ask_with_timeout(depth_source: object, image: np.ndarray, camera: PinholeCamera,
+def ask_depth(depth_source: object, image: np.ndarray, camera: PinholeCamera,
                       timeout_s: float) -> tuple[np.ndarray | None, str]:
-    """``(inverse-depth map, "")`` or ``(None, why)``; gives up after ``timeout_s`` (the request
-    then finishes on its own daemon thread and is discarded)."""
+    """``depth_source``'s answer for ``image``: ``(inverse-depth map (h, w) 1/m, "")`` or
+    ``(None, why)``; gives up after ``timeout_s`` (the request then finishes on its own daemon
+    thread and is discarded). Never raises: the caller is the tracking thread."""
     result: dict = {}
 
     def ask() -> None:

@@ -29,7 +29,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.geometry import sim3, so3
-from metricslam.slam.events import InitialScaleApplied, KeyframeMarginalized
+from metricslam.slam.events import InitialScaleApplied, KeyframeMarginalized, KeyframeSettled
 from metricslam.slam.initial_scale import InitialScale, InitialScaleConfig, measure_initial_scale
 from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.timing import TimingSummary
@@ -81,6 +81,7 @@ class SlamPipeline:
         self._scale_states: Counter = Counter()
         self._first_metric_frame: int | None = None
         self._frame_now = -1  # the frame being processed (KeyframeMarginalized events)
+        self._settled_kf_id = -1  # the newest keyframe a KeyframeSettled event was emitted for
 
     # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
@@ -94,6 +95,15 @@ class SlamPipeline:
             self.backend.on_keyframe_marginalized(kf)
             self._timings_ms["backend_handoff"].append(1e3 * (time.perf_counter() - t0))
 
+    def _emit_settled(self) -> None:
+        events = getattr(self.backend, "events", None)
+        if events is None or not events.wants(KeyframeSettled):
+            return
+        snapshots, generation = self.vo.window.settled_after(self._settled_kf_id)
+        for kf in snapshots:
+            self._settled_kf_id = kf.kf_id
+            events.emit(KeyframeSettled(kf, self._frame_now, generation))
+
     # -- SlamSession --------------------------------------------------------------------------
     def process(self, frame: Frame) -> PoseEstimate:
         """Track one frame, feed the back end, apply its correction. Never raises on bad input."""
@@ -101,6 +111,7 @@ class SlamPipeline:
         self._frame_now = int(frame.index)
         est = self.vo.process(frame)
         self._collect_anchors()
+        self._emit_settled()
         scale_ok, n_factors = False, 0
         if self.backend is not None:
             try:

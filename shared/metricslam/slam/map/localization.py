@@ -103,8 +103,8 @@ class MapLocalization:
         self.relocalizer = Relocalizer(saved, camera, config)
         self._backend = None
         self._lock = threading.Lock()
-        self._dirty = threading.Event()  # a match verified or a solve finished since refresh()
-        self._n_matches = 0
+        self._dirty = threading.Event()  # a solve finished since refresh()
+        self._n_matches = 0  # the relocalizer's match version at the last estimate
         self.S_map_world: np.ndarray | None = None
         self.matches_used = 0
         self.matches_rejected = 0
@@ -123,7 +123,7 @@ class MapLocalization:
     def refresh(self, force: bool = False) -> np.ndarray | None:
         """Re-estimate ``S_map_world`` from every match against the back end's latest solve when
         something changed since the last call (or ``force``); returns it (None: not relocalized)."""
-        n = len(self.relocalizer.matches)
+        n = self.relocalizer.version
         if not (force or n != self._n_matches or (n and self._dirty.is_set())):
             return self.S_map_world
         self._dirty.clear()
@@ -134,6 +134,7 @@ class MapLocalization:
             self._n_matches = n
             if S is not None:
                 self.S_map_world, self.matches_used, self.matches_rejected = S, used, rejected
+                self.relocalizer.early_done = used >= MIN_LIVE_MATCHES
             return self.S_map_world
 
     def map_trajectory(self, trajectory: list[PoseEstimate]) -> list[PoseEstimate]:

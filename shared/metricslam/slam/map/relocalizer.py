@@ -1,5 +1,11 @@
 """``Relocalizer``: puts a new session into a saved map (``docs/maps.md``), then into its frame.
 
+Until the session has relocalized (:data:`EARLY_MATCHES` verified matches), every keyframe is also
+queried as soon as a newer keyframe observed it (:class:`~metricslam.slam.events.KeyframeSettled`),
+long before it leaves the VO window: with the depth source's answer for it (asked there, bounded
+wait; without one, its landmarks alone carry the scale), its pose ``S_world_kf`` the
+window's of that moment, carried through every later warp of the VO
+(:meth:`~metricslam.slam.vo.window.SlidingWindow.warp_since`) until the back end has the keyframe.
 Every keyframe the session marginalizes is a query (:class:`~metricslam.slam.events.KeyframeMarginalized`;
 in scale mode once its depth answer arrived, :class:`~metricslam.slam.events.ScaleMeasured`):
 ORB retrieval descriptors → bag-of-words with the *map's* vocabulary → cosine scores against
@@ -25,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -34,8 +40,9 @@ from metricslam.camera import PinholeCamera
 from metricslam.depth.model import to_gray_u8
 from metricslam.geometry import sim3, so3
 from metricslam.depth.sample import sample_map
-from metricslam.slam.events import KeyframeMarginalized, ScaleMeasured
+from metricslam.slam.events import KeyframeMarginalized, KeyframeSettled, ScaleMeasured
 from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.initial_scale import ask_depth
 from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
 from metricslam.slam.loop.verification import LandmarkFeatures, landmark_features, verify
@@ -46,6 +53,10 @@ log = logging.getLogger(__name__)
 
 #: two matches agree (:func:`close`) within these: metres, radians, |log scale|
 GATE_M, GATE_RAD, GATE_LOG_SCALE = 2.0, 0.1, 0.1
+#: early queries (keyframes still in the VO window) stop once this many matches verified, or when
+#: the owner says the session is placed (``early_done``); each asks the depth source for the
+#: keyframe (waiting at most this long, on the tracking thread)
+EARLY_MATCHES, EARLY_DEPTH_TIMEOUT_S = 6, 1.0
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,10 @@ class RelocMatch:
     S_mapkf_kf: np.ndarray
     n_inliers: int
     score: float
+    #: early match (keyframe not yet in the back end): its pose (4, 4 Sim(3)) in the VO world after
+    #: ``warp_generation`` warps, the VO units ``S_mapkf_kf`` is expressed in
+    S_world_kf_vo: np.ndarray | None = None
+    warp_generation: int = 0
 
 
 class Relocalizer:
@@ -93,8 +108,11 @@ class Relocalizer:
                                            fastThreshold=12)
         self._waiting: dict[int, tuple] = {}  # kf_id -> (keyframe, frame_now) until its depth
         self._rng = np.random.default_rng(seed)
-        self._prev_bow: np.ndarray | None = None
+        self._prev_bow: dict[bool, np.ndarray] = {}  # early?: the previous query's row (score ratio)
+        self._window = None  # the session VO's sliding window (its warps), once attached
         self.matches: list[RelocMatch] = []
+        self.version = 0  # bumped whenever ``matches`` changes (a new list each time)
+        self.early_done = False  # set by the owner once enough matches agree (no more early queries)
         #: keyframe frame index -> its bag-of-words row (K,) in the MAP's vocabulary (a merged map
         #: indexes the session's keyframes with them, :mod:`metricslam.slam.map.merge`)
         self.bow_by_frame: dict[int, np.ndarray] = {}
@@ -103,12 +121,26 @@ class Relocalizer:
         self.query_ms: list[float] = []  # wall time of each query (retrieval + verification)
 
     def attach(self, session) -> None:
-        """Query every keyframe ``session`` (a pipeline with a back end) marginalizes."""
-        self._with_depth = getattr(session.backend, "depth_source", None) is not None
-        session.backend.events.subscribe(self._on_event, KeyframeMarginalized, ScaleMeasured)
+        """Query every keyframe ``session`` (a pipeline with a back end) marginalizes, and its
+        window keyframes early until relocalized."""
+        self._depth_source = getattr(session.backend, "depth_source", None)
+        self._with_depth = self._depth_source is not None
+        self._window = session.vo.window
+        session.backend.events.subscribe(self._on_event, KeyframeMarginalized, ScaleMeasured, KeyframeSettled)
 
     def _on_event(self, ev) -> None:
+        if isinstance(ev, KeyframeSettled):
+            if not self.early_done and len(self.matches) < EARLY_MATCHES:
+                kf = ev.keyframe
+                inv_depth = (None if self._depth_source is None else
+                             ask_depth(self._depth_source, kf.image, kf.camera, EARLY_DEPTH_TIMEOUT_S)[0])
+                m = self.query(kf, ev.frame_index_now, inv_depth, early=True)
+                if m is not None:
+                    self._record(replace(m, S_world_kf_vo=sim3.from_se3(ev.keyframe.T_vo_kf),
+                                         warp_generation=ev.warp_generation))
+            return
         if isinstance(ev, KeyframeMarginalized):
+            self._settle(ev.keyframe)
             if self._with_depth:
                 self._waiting[int(ev.keyframe.kf_id)] = (ev.keyframe, ev.frame_index_now)
                 return
@@ -119,36 +151,60 @@ class Relocalizer:
                 return
             match = self.query(got[0], got[1], ev.inv_depth_map_per_m)
         if match is not None:
-            self.matches.append(match)
-            if self.first_frame is None:
-                self.first_frame = match.frame_now
-                log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
-                         "(%d inliers)", match.frame_now, match.kf_frame, match.map_kf_id, match.n_inliers)
+            self._record(match)
 
-    def query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None = None) -> RelocMatch | None:
+    def _record(self, match: RelocMatch) -> None:
+        """Add ``match``; one per session keyframe (a later query of the same keyframe replaces
+        an early one, so two matches that agree are two keyframes)."""
+        same = [k for k, m in enumerate(self.matches) if m.kf_frame == match.kf_frame]
+        self.matches = ([*self.matches[:same[0]], match, *self.matches[same[0] + 1:]] if same
+                        else [*self.matches, match])  # a new list: readers on other threads
+        self.version += 1
+        if self.first_frame is None:
+            self.first_frame = match.frame_now
+            log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
+                     "(%d inliers)", match.frame_now, match.kf_frame, match.map_kf_id, match.n_inliers)
+
+    def _settle(self, kf) -> None:
+        """``kf`` leaves the VO window: re-express its early match in the VO units it is
+        handed to the back end in (every warp since the query scaled them by ``s``)."""
+        for k, m in enumerate(self.matches):
+            if m.kf_frame == int(kf.frame_index) and m.S_world_kf_vo is not None:
+                W = self._window.warp_since(m.warp_generation)
+                down = sim3.from_rts(np.eye(3), np.zeros(3), 1.0 / sim3.scale(W))
+                self.matches = [*self.matches[:k], replace(
+                    m, S_mapkf_kf=m.S_mapkf_kf @ down, S_world_kf_vo=sim3.from_se3(kf.T_vo_kf),
+                    warp_generation=len(self._window.warps)), *self.matches[k + 1:]]
+                self.version += 1
+
+    def query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None = None,
+              early: bool = False) -> RelocMatch | None:
         """Verify keyframe ``kf`` (a MarginalizedKeyframe; ``inv_depth_map`` (h, w) 1/m its
-        network depth, None: landmarks only) against its best map candidates."""
+        network depth, None: landmarks only) against its best map candidates (``early``: a
+        window keyframe's snapshot, compared with the previous early query's)."""
         t0 = time.perf_counter()
         try:
-            return self._query(kf, frame_now, inv_depth_map)
+            return self._query(kf, frame_now, inv_depth_map, early)
         finally:
             self.query_ms.append(1e3 * (time.perf_counter() - t0))
 
-    def _query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None) -> RelocMatch | None:
+    def _query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None, early: bool) -> RelocMatch | None:
         self.n_queries += 1
         cfg = self.config
         gray = to_gray_u8(kf.image)
         v = self._vocab.bow(retrieval_descriptors(self._orb, gray, cfg.image_scale))
         self.bow_by_frame[int(kf.frame_index)] = np.asarray(v, np.float32)
-        ref = None if self._prev_bow is None else float(self._prev_bow @ v)
-        self._prev_bow = v
+        prev = self._prev_bow.get(early)
+        ref = None if prev is None else float(prev @ v)
+        self._prev_bow[early] = v
         if not len(self._ids) or not np.any(v):
             return None
         scores = self._rows @ v
         order = np.argsort(-scores, kind="stable")[: cfg.n_candidates]
         lm = landmark_features(self._orb_landmarks, gray, kf.camera, kf.landmarks_uv_px,
                                kf.landmarks_inv_depth)
-        new = None if inv_depth_map is None else self._corners(gray, kf, lm, inv_depth_map)
+        new = (self._corners(gray, kf, lm, inv_depth_map) if inv_depth_map is not None or early
+               else None)
         for i in order:
             if scores[i] <= 0 or (ref is not None and ref > 0 and scores[i] < cfg.min_score_ratio * ref):
                 break
@@ -165,7 +221,13 @@ class Relocalizer:
 
     def _corners(self, gray, kf, lm: LandmarkFeatures, inv_depth_map) -> corner_mod.CornerFeatures | None:
         """The keyframe's ORB corners with network depth plus its landmark features, 3-D in its
-        VO units (the loop detector's corner features), or None without a usable depth map."""
+        VO units (the loop detector's corner features), or None without a usable depth map.
+        ``inv_depth_map`` None (an early query): the corners without depth (NaN) — PnP against the
+        map's metric corners needs only their pixels, the scale then rests on the landmarks."""
+        if inv_depth_map is None:
+            uv, desc = corner_mod.detect_corners(self._orb_corners, gray)
+            return corner_mod.CornerFeatures(np.vstack([uv, lm.uv_px]), np.vstack([desc, lm.descriptors]),
+                                             np.vstack([np.full((len(uv), 3), np.nan), lm.points]))
         size = (int(gray.shape[1]), int(gray.shape[0]))
         lm_uv = np.asarray(kf.landmarks_uv_px, float).reshape(-1, 2)
         m_per_unit = corner_mod.metres_per_unit(kf.landmarks_inv_depth, sample_map(inv_depth_map, lm_uv, size))
@@ -214,6 +276,8 @@ class Relocalizer:
         out = []
         for m in self.matches:
             S_world_kf = S_world_kf_by_frame.get(m.kf_frame)
+            if S_world_kf is None and m.S_world_kf_vo is not None and self._window is not None:
+                S_world_kf = self._window.warp_since(m.warp_generation) @ m.S_world_kf_vo
             if S_world_kf is not None:
                 T = sim3.from_se3(self._T_map_kf[m.map_kf_id])
                 out.append((m, T @ self.measured_S_mapkf_kf(m, S_world_kf, metric_world) @ sim3.inverse(S_world_kf)))

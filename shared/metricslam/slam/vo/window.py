@@ -221,20 +221,39 @@ class SlidingWindow:
                 self.prior_ids = kf_ids[1:]
             else:
                 self.prior, self.prior_ids = None, []
-            kids = [lm for lm in self.map.children(kf.kf_id) if lm.has_depth and lm.rho > 0]
             prev = self._last_marg.get(kf.segment_id)
-            self.outbox.append(MarginalizedKeyframe(
-                kf_id=kf.kf_id, frame_index=kf.frame_index, t_ns=kf.t_ns, segment_id=kf.segment_id,
-                T_vo_kf=kf.T_world_kf.copy(),
-                T_prevkf_kf=None if prev is None else se3.inverse(prev) @ kf.T_world_kf,
-                landmarks_uv_px=np.array([lm.uv_host_px for lm in kids]).reshape(-1, 2),
-                landmarks_inv_depth=np.array([lm.rho for lm in kids], dtype=float),
-                image=kf.image, camera=self.camera))
+            self.outbox.append(self._handoff(kf, None if prev is None else se3.inverse(prev) @ kf.T_world_kf))
             self._last_marg[kf.segment_id] = kf.T_world_kf.copy()
             self.frozen_poses[kf.frame_index] = kf.T_world_kf.copy()
             self.keyframes.pop(0)
             self.map.remove_keyframe(kf.kf_id)
             self.counters["marginalized"] += 1
+
+    def _handoff(self, kf: Keyframe, T_prevkf_kf: np.ndarray | None) -> MarginalizedKeyframe:
+        """``kf`` with its child landmarks that have a depth, as the global graph receives it."""
+        kids = [lm for lm in self.map.children(kf.kf_id) if lm.has_depth and lm.rho > 0]
+        return MarginalizedKeyframe(
+            kf_id=kf.kf_id, frame_index=kf.frame_index, t_ns=kf.t_ns, segment_id=kf.segment_id,
+            T_vo_kf=kf.T_world_kf.copy(), T_prevkf_kf=T_prevkf_kf,
+            landmarks_uv_px=np.array([lm.uv_host_px for lm in kids]).reshape(-1, 2),
+            landmarks_inv_depth=np.array([lm.rho for lm in kids], dtype=float),
+            image=kf.image, camera=self.camera)
+
+    def settled_after(self, kf_id: int) -> tuple[list[MarginalizedKeyframe], int]:
+        """Snapshots (``T_prevkf_kf`` None) of the window keyframes newer than ``kf_id`` that are
+        not the newest (a later keyframe observed them, so their landmarks have depth), and the
+        warp generation they are expressed in (``len(warps)``)."""
+        with self.lock:
+            return [self._handoff(kf, None) for kf in self.keyframes[:-1] if kf.kf_id > kf_id], len(self.warps)
+
+    def warp_since(self, generation: int) -> np.ndarray:
+        """The Sim(3) (4, 4) of every warp applied since ``generation`` (``len(warps)`` then),
+        composed: it maps that moment's VO world to today's."""
+        with self.lock:
+            S = np.eye(4)
+            for W in self.warps[generation:]:
+                S = W @ S
+            return S
 
     def clear(self) -> None:
         """Forget the window (after it was marginalized, e.g. on tracking loss)."""

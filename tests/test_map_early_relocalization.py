@@ -1,0 +1,89 @@
+"""Early relocalization queries (keyframes still in the VO window, ``KeyframeSettled``).
+
+An early match is expressed in the VO units of the moment it verified; the VO is warped later
+(the back end's metric corrections scale it by s), and the keyframe reaches the back end in the
+new units. Whatever happens in between, the ``S_map_world`` the match implies must not move: it
+is one fact about the world. Checked with a real :class:`SlidingWindow` (its warp log) and the
+relocalizer's own bookkeeping; the end-to-end effect (0013 relocalized at frame 3 instead of 32)
+is in ``bench/maps.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from metricslam.camera import PinholeCamera
+from metricslam.geometry import se3, sim3, so3
+from metricslam.slam.events import EventBus, KeyframeSettled, ScaleMeasured
+from metricslam.slam.map.relocalizer import RelocMatch, Relocalizer
+from metricslam.slam.types import MarginalizedKeyframe
+from metricslam.slam.vo.config import VOConfig
+from metricslam.slam.vo.window import SlidingWindow
+
+CAMERA = PinholeCamera(fx_px=700.0, fy_px=700.0, cx_px=320.0, cy_px=180.0, width_px=640, height_px=360)
+
+
+def _bare_relocalizer(window: SlidingWindow, T_map_mapkf: np.ndarray) -> Relocalizer:
+    r = Relocalizer.__new__(Relocalizer)  # no saved map needed for the bookkeeping under test
+    r._T_map_kf = {7: T_map_mapkf}
+    r._window = window
+    r.matches, r.version, r.first_frame, r.early_done = [], 0, None, False
+    return r
+
+
+def _kf(frame: int, T_vo_kf: np.ndarray) -> MarginalizedKeyframe:
+    return MarginalizedKeyframe(kf_id=frame, frame_index=frame, t_ns=0, segment_id=0, T_vo_kf=T_vo_kf,
+                                T_prevkf_kf=None, landmarks_uv_px=np.zeros((0, 2)),
+                                landmarks_inv_depth=np.zeros(0), image=np.zeros((360, 640), np.uint8),
+                                camera=CAMERA)
+
+
+def _warp(W: np.ndarray, T: np.ndarray) -> np.ndarray:
+    R, t, s = sim3.split(W)
+    return se3.from_rt(R @ T[:3, :3], s * R @ T[:3, 3] + t)
+
+
+def test_an_early_match_implies_the_same_map_frame_before_and_after_warps_and_marginalization():
+    window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
+    T_map_mapkf = se3.from_rt(so3.exp(np.array([0.0, 0.3, 0.0])), np.array([5.0, 0.0, 20.0]))
+    r = _bare_relocalizer(window, T_map_mapkf)
+    T_vo_kf = se3.from_rt(so3.exp(np.array([0.0, -0.1, 0.02])), np.array([1.0, 0.1, 3.0]))
+    S_mapkf_kf = sim3.from_rts(so3.exp(np.array([0.01, 0.05, 0.0])), np.array([0.5, 0.0, -2.0]), 7.5)
+    r._record(RelocMatch(7, 12, 14, S_mapkf_kf, 80, 0.4, sim3.from_se3(T_vo_kf), len(window.warps)))
+    before, = [S for _, S in r.candidates({})]
+
+    # the back end warps the VO twice (scale 3, then 0.8) before the keyframe leaves the window
+    for W in (sim3.from_rts(so3.exp(np.array([0.0, 0.02, 0.0])), np.array([1.0, 0.0, 0.5]), 3.0),
+              sim3.from_rts(np.eye(3), np.array([0.0, 0.2, 0.0]), 0.8)):
+        window.apply_similarity(W, segment_id=0)
+        T_vo_kf = _warp(W, T_vo_kf)
+    S_after_warps = sim3.inverse(window.warp_since(0))
+    pending, = [S for _, S in r.candidates({})]
+    np.testing.assert_allclose(pending, before @ S_after_warps, atol=1e-9)  # map ← today's world
+
+    r._settle(_kf(12, T_vo_kf))  # marginalized: handed to the back end in today's units
+    settled, = [S for _, S in r.candidates({})]
+    in_graph, = [S for _, S in r.candidates({12: sim3.from_se3(T_vo_kf)})]
+    np.testing.assert_allclose(settled, pending, atol=1e-9)
+    np.testing.assert_allclose(in_graph, pending, atol=1e-9)
+    assert np.isclose(sim3.scale(r.matches[0].S_mapkf_kf), 7.5 / (3.0 * 0.8))
+
+
+def test_a_later_query_of_the_same_keyframe_replaces_its_early_match():
+    window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
+    r = _bare_relocalizer(window, np.eye(4))
+    early = RelocMatch(7, 12, 14, np.eye(4), 40, 0.3, np.eye(4), 0)
+    later = RelocMatch(7, 12, 30, np.eye(4), 200, 0.3)
+    other = RelocMatch(7, 15, 31, np.eye(4), 90, 0.3)
+    for m in (early, later, other):
+        r._record(m)
+    assert [m.n_inliers for m in r.matches] == [200, 90]
+    assert r.first_frame == 14 and r.version == 3  # relocalized from the early match's frame on
+
+
+def test_settled_events_are_built_only_for_subscribers():
+    bus = EventBus()
+    assert not bus.wants(KeyframeSettled)
+    bus.subscribe(lambda ev: None, ScaleMeasured)
+    assert not bus.wants(KeyframeSettled)
+    bus.subscribe(lambda ev: None, KeyframeSettled)
+    assert bus.wants(KeyframeSettled)
