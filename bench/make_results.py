@@ -9,7 +9,7 @@ Sources (all under ``bench/results/``):
 
 * ``landmark_depth.json`` — the corner check of the shipped model (``bench/landmark_depth.py``);
 * ``depth_accuracy_0013.json`` — single-image LiDAR on 2011_09_26_drive_0013 (``bench/depth_accuracy.py``);
-* ``accuracy_v4.json`` (else ``accuracy_v3.json``) — deterministic SLAM runs with the shipped model (``bench/accuracy.py``);
+* ``accuracy_shipped.json`` (else ``accuracy_v3.json``) — deterministic SLAM runs with the shipped model (``bench/accuracy.py``);
 * ``depth_speed_int8.json`` — the int8 network's latency (``bench/depth_speed.py``);
 * ``speed.json`` — frames/s of ``metricslam run`` (``bench/speed.py``);
 * ``depth_v3_selection.json`` — how the v3 candidates were judged (``bench/select_depth.py``, retired: docs/history/bench_retired.md);
@@ -176,7 +176,7 @@ def pose_jumps_block(data: dict) -> str:
 def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
-    slam_file = "accuracy_v4.json" if (RESULTS / "accuracy_v4.json").is_file() else "accuracy_v3.json"
+    slam_file = "accuracy_shipped.json" if (RESULTS / "accuracy_shipped.json").is_file() else "accuracy_v3.json"
     slam, sel = _load(slam_file), _load("depth_v3_selection_slam.json")
     dspeed = _load("depth_speed_int8.json")
     speeds = {n: d for n in ("speed_0013.json", "speed.json") if (d := _load(n))}
