@@ -39,6 +39,7 @@ from bench.results_common import (
     _src,
     note_text,
 )
+from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
 from bench.results_pages import latency_block, live_vs_offline_block, own_rig_block, soak_block
 
 def corner_table(data: dict) -> str:
@@ -225,16 +226,15 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
-    for recipe, what in (("v4", "every real drive"), ("v5", "every real drive and the six rendered streets"),
-                         ("v6", "every real drive and 30 rendered streets")):
-        folds = _load(f"depth_{recipe}_folds.json")
+    for name, what in (("v4_folds", "v4, every real drive"), ("v5_folds", "v5, every real drive and the six rendered "
+                       "streets"), ("v6_folds", "v6, every real drive and 30 rendered streets"),
+                       ("v5_ship", "v5 as shipped: its all-drive runs, under rule_depth_ship.md")):
+        folds = _load(f"depth_{name}.json")
         if folds:
-            from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
-
-            page += [f"## Depth {recipe} ({what}): leave-one-drive-out folds, seeds and their ensemble (issue #31)",
-                     "", f"Rule committed before any {recipe} number: `docs/history/rule_depth_{recipe}.md`. "
+            page += [f"## Depth {what}: leave-one-drive-out folds, seeds and their ensemble (issue #31)", "",
+                     f"Rule committed before any number it decides on: `docs/history/rule_depth_{folds.get('rule', folds.get('recipe', 'v4'))}.md`. "
                      + FOLD_SCORE_TEXT, "", fold_table(folds), "", decision_line(folds), "",
-                     _src(f"depth_{recipe}_folds.json", folds), ""]
+                     _src(f"depth_{name}.json", folds), ""]
     jumps = _load("pose_jumps.json")
     if jumps:
         page += ["## Live pose jumps vs the continuous odometry stream (issue #32)", "",
