@@ -6,7 +6,9 @@ first frames and ``"map"`` from :data:`SWITCH` on — so what is checked is the 
 native pose, keyframe, odometry and trajectory messages carry the frame id; the continuous
 odometry starts over at the switch instead of blending the jump into the map frame; the ROS 2
 bridge publishes ``map`` as the parent frame (pose, odometry, ``/tf``) from then on. The real
-relocalization is ``tests/test_slam_service_map.py``.
+relocalization is ``tests/test_slam_service_map.py``. The same transport recorded by
+``poses --mcap`` keeps the frame ids (parent frame ``map``), and a trajectory stored in
+``state_dir`` keeps its ``"map"`` label across a restart of the service.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 
 from metricslam.camera import PinholeCamera
+from metricslam.errors import ServiceError
 from metricslam.slam.system_config import SystemConfig
 from metricslam.slam.types import PoseEstimate, TrackingState
 from metricslam.wire import keys
@@ -53,16 +56,22 @@ class RelocalizingSession(IdentitySession):
         return [p for p in self._poses if p.frame_index >= SWITCH] if self.frame_id == "map" else list(self._poses)
 
 
+def _start(settings: SlamServiceSettings) -> SlamService:
+    return SlamService(settings, session_factory=lambda cid, cam: RelocalizingSession(),
+                       config=SystemConfig(depth={"use_scale": False}, queues={"frames": 64})).start()
+
+
 @pytest.fixture()
-def stack(request):
+def stack(request, tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     client = open_client(endpoint)
-    extra = request.param if hasattr(request, "param") else {}
+    extra = dict(request.param) if hasattr(request, "param") else {}
+    if extra.get("state_dir") is True:
+        extra["state_dir"] = tmp_path / "state"
     settings = SlamServiceSettings(zenoh_endpoint=endpoint, depth_url=None, session_kind="identity",
                                    status_period_s=0.2, ros2_domain_id=7, **extra)
-    svc = SlamService(settings, session_factory=lambda cid, cam: RelocalizingSession(),
-                      config=SystemConfig(depth={"use_scale": False}, queues={"frames": 64})).start()
+    svc = _start(settings)
     yield client, svc
     svc.stop()
     client.close()
@@ -145,3 +154,54 @@ def test_ros2_parent_frame_is_map_once_relocalized(stack) -> None:
         assert r.u32() == 1
         tf_parents.append(r.header()[2])
     assert tf_parents == ["cam0/world"] * SWITCH + ["map"] * (5 - SWITCH)
+
+
+def test_poses_mcap_keeps_each_messages_frame(stack, tmp_path) -> None:
+    """What ``poses --mcap`` writes (:func:`write_mcap` of a real :class:`PoseRecorder`): the
+    bridge's parent frames, ``map`` for the map-frame poses, ``/tf`` and final trajectory."""
+    pytest.importorskip("mcap")
+    from metricslam_slam.tools.recording import write_mcap
+    from tests.ros2_cdr import CdrReader
+    from tests.test_mcap_recording import read_mcap
+
+    client, _ = stack
+    recorder = PoseRecorder(client, "cam0", map_topics=True)
+    time.sleep(0.3)
+    _publish(client, 6)
+    assert recorder.wait_frames(6, 20)
+    trajectory = query_trajectory(client, "cam0")
+    write_mcap(tmp_path / "live.mcap", "cam0", recorder, trajectory)
+    recorder.close()
+    topics = read_mcap(tmp_path / "live.mcap")
+    expected = ["cam0/world"] * SWITCH + ["map"] * (6 - SWITCH)
+    assert [CdrReader(m[2]).header()[2] for m in topics["/metricslam/cam0/pose"]] == expected
+    tf = [CdrReader(m[2]) for m in topics["/tf"]]
+    assert all(r.u32() == 1 for r in tf) and [r.header()[2] for r in tf] == expected
+    assert CdrReader(topics["/metricslam/cam0/path"][-1][2]).header()[2] == "map"
+
+
+@pytest.mark.parametrize("stack", [{"camera_idle_timeout_s": 0.5, "state_dir": True}], indirect=True)
+def test_a_restarted_service_answers_the_stored_trajectory_in_the_map_frame(stack) -> None:
+    client, svc = stack
+    recorder = PoseRecorder(client, "cam0")
+    time.sleep(0.3)
+    _publish(client, 5)
+    assert recorder.wait_for(lambda r: any(s.event == "camera_closed" for s in r.statuses), 20)
+    recorder.close()
+    svc.stop()  # the final trajectory is in state_dir; the next service has nothing in memory
+    restarted = _start(svc.settings)
+    answers = []
+    try:  # its queryable reaches the router shortly after the start
+        assert _wait(lambda: answers.append(_try_query(client)) or answers[-1] is not None, 10.0)
+    finally:
+        restarted.stop()
+    traj = answers[-1]
+    assert traj.frame_id == "map" and list(traj.frame_index) == list(range(SWITCH, 5))
+    np.testing.assert_allclose(traj.T_world_cam[:, 0, 3], SHIFT_M)
+
+
+def _try_query(client):
+    try:
+        return query_trajectory(client, "cam0", timeout_s=1.0)
+    except ServiceError:
+        return None

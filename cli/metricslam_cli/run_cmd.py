@@ -208,7 +208,8 @@ def run(args: argparse.Namespace) -> int:
         maps.attach(pipeline)
     if viewer is not None:
         viewer.attach(pipeline, camera_id(seq.name))  # depth maps and scale records: back-end events
-    recorder = SessionRecorder(mcap_log, pipeline) if mcap_log is not None else None
+    recorder = (SessionRecorder(mcap_log, pipeline, maps.localization if maps is not None else None)
+                if mcap_log is not None else None)  # with --map, the final path in the map frame too
     streams = None
     if args.live_out or args.continuous_out:
         from metricslam_cli.live_streams import LiveStreams

@@ -6,11 +6,17 @@ from the live bridge (``docs/recordings.md`` lists the topics). Each message's `
 ``publish_time`` are the frame's ``t_ns`` (sensor time, ns), so the file replays on the
 sequence's own clock. Thread-safe: depth maps arrive from the back end's depth thread.
 
+Frames: a pose, path or cloud is in its camera's SLAM world (``frame_id="world"``, the default:
+parent frame ``<tok>/world``) or in a saved map the camera relocalized into (``frame_id="map"``:
+parent frame ``map``), named as the live ROS 2 bridge names them
+(:func:`~metricslam.ros2.rmw_zenoh.parent_frame_id`).
+
 Example::
 
     with McapLog("run.mcap", camera_id="cam0") as log:
         log.pose(t_ns, T_world_cam)
         log.landmarks(t_ns, points_world)
+        log.path(t_ns, stamps_ns, T_map_cam, frame_id="map")  # parent frame "map"
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.errors import ConfigError, ImageError
 from metricslam.ros2 import messages
-from metricslam.ros2.rmw_zenoh import frame_ids, ros_token
+from metricslam.ros2.rmw_zenoh import frame_ids, parent_frame_id, ros_token
 from metricslam.ros2.typestore import msgdef, serialize, typestore
 from metricslam.slam.events import SCALE_RECORD_VALUES
 
@@ -41,12 +47,14 @@ class McapTopics:
         depth_info: ``/metricslam/<tok>/keyframe/depth/camera_info`` sensor_msgs/CameraInfo of that
             depth image at its own (coarse) resolution — the live bridge's topics, same names.
         landmarks: ``/metricslam/<tok>/landmarks`` sensor_msgs/PointCloud2 (x, y, z float32).
-        tf: ``/tf`` tf2_msgs/TFMessage, ``<tok>/world`` -> ``<tok>/camera_optical`` every frame.
+        tf: ``/tf`` tf2_msgs/TFMessage, ``<tok>/world`` (or ``map``) -> ``<tok>/camera_optical``
+            every frame.
         scale: ``/metricslam/<tok>/scale/<name>`` per keyframe scale record (:meth:`McapLog.scale_health`):
             ``learned``, ``ground`` (m per keyframe VO unit), ``disagreement_log``
             (log learned / ground), ``learned_spread_log``, ``sigma_log`` (the back end's σ of
             log scale) as std_msgs/Float64 and ``warning`` as std_msgs/Bool.
-        world_frame, camera_frame: the ``frame_id`` values.
+        world_frame, camera_frame: the ``frame_id`` values ``<tok>/world`` and
+            ``<tok>/camera_optical``; a pose in the map frame has parent :meth:`parent` ``map``.
     """
 
     def __init__(self, camera_id: str) -> None:
@@ -59,7 +67,12 @@ class McapTopics:
         self.depth_info = f"{base}/keyframe/depth/camera_info"
         self.tf = "/tf"
         self.scale = {name: f"{base}/scale/{name}" for name in SCALE_RECORD_VALUES + ("warning",)}
+        self.camera_id = camera_id
         self.world_frame, self.camera_frame = frame_ids(camera_id)
+
+    def parent(self, frame_id: str = "world") -> str:
+        """The ROS parent frame of a pose in the native ``frame_id`` (``"world"`` or ``"map"``)."""
+        return parent_frame_id(self.camera_id, frame_id)
 
 
 class McapLog:
@@ -94,15 +107,20 @@ class McapLog:
         self._closed = False
 
     # -- one call per kind of output ----------------------------------------------------------
-    def pose(self, t_ns: int, T_world_cam: np.ndarray) -> None:
-        """The live pose of one frame: PoseStamped and the matching ``/tf`` transform."""
+    def pose(self, t_ns: int, T_world_cam: np.ndarray, frame_id: str = "world") -> None:
+        """The live pose (4, 4) of one frame in ``frame_id`` (``"world"``: the session's world,
+        ``"map"``: ``T_map_cam``, m): PoseStamped and the matching ``/tf`` transform, both with
+        parent frame :meth:`McapTopics.parent`."""
         tp = self.topics
-        self.write(tp.pose, messages.pose_stamped(T_world_cam, t_ns, tp.world_frame), t_ns)
-        self.write(tp.tf, messages.tf_message(T_world_cam, t_ns, tp.world_frame, tp.camera_frame), t_ns)
+        parent = tp.parent(frame_id)
+        self.write(tp.pose, messages.pose_stamped(T_world_cam, t_ns, parent), t_ns)
+        self.write(tp.tf, messages.tf_message(T_world_cam, t_ns, parent, tp.camera_frame), t_ns)
 
-    def path(self, t_ns: int, stamps_ns: np.ndarray, T_world_cam: np.ndarray) -> None:
-        """The optimized trajectory (N poses) as it stood at ``t_ns``."""
-        self.write(self.topics.path, messages.path(stamps_ns, T_world_cam, t_ns, self.topics.world_frame), t_ns)
+    def path(self, t_ns: int, stamps_ns: np.ndarray, T_world_cam: np.ndarray, frame_id: str = "world") -> None:
+        """The optimized trajectory (N,) ns / (N, 4, 4) as it stood at ``t_ns``, in ``frame_id``
+        (``"world"`` or ``"map"``, :meth:`pose`)."""
+        tp = self.topics
+        self.write(tp.path, messages.path(stamps_ns, T_world_cam, t_ns, tp.parent(frame_id)), t_ns)
 
     def keyframe_image(self, t_ns: int, pixels: np.ndarray, camera: PinholeCamera | None) -> None:
         """A keyframe image, JPEG-compressed (gray or RGB), and its CameraInfo (when known)."""
@@ -133,9 +151,10 @@ class McapLog:
             grid = messages.depth_grid_camera(camera, size, depth_m.shape)
             self.write(tp.depth_info, messages.camera_info(grid, t_ns, tp.camera_frame), t_ns)
 
-    def landmarks(self, t_ns: int, points_world: np.ndarray) -> None:
-        """Landmark positions (N, 3) in the SLAM world frame."""
-        self.write(self.topics.landmarks, messages.point_cloud2(points_world, t_ns, self.topics.world_frame), t_ns)
+    def landmarks(self, t_ns: int, points_world: np.ndarray, frame_id: str = "world") -> None:
+        """Landmark positions (N, 3) in ``frame_id`` (``"world"``: the SLAM world; ``"map"``: m)."""
+        tp = self.topics
+        self.write(tp.landmarks, messages.point_cloud2(points_world, t_ns, tp.parent(frame_id)), t_ns)
 
     def scale_health(self, t_ns: int, values: dict[str, float | None], warning: bool) -> None:
         """One keyframe's scale record: each finite number of ``values`` (keys of

@@ -136,6 +136,15 @@ def frame_ids(camera_id: str) -> tuple[str, str]:
     return f"{tok}/world", f"{tok}/camera_optical"
 
 
+def parent_frame_id(camera_id: str, frame_id: str = "world") -> str:
+    """The ROS ``header.frame_id`` of a camera's pose, path or cloud whose native ``frame_id``
+    (:data:`~metricslam.wire.base.FrameId`) is ``frame_id``: ``map`` for ``"map"`` (the saved map
+    the camera relocalized into, shared by every camera in it; metres), else the camera's own
+    ``<tok>/world`` (:func:`frame_ids`). The one mapping the live ROS 2 bridge and the MCAP
+    recordings share."""
+    return "map" if frame_id == "map" else frame_ids(camera_id)[0]
+
+
 def topic_key(domain_id: int, topic: str, msgtype: str, hash_chunk: str | None = None) -> str:
     """The data key expression of ``topic`` carrying ``msgtype``; ``hash_chunk`` replaces the
     type hash (``*`` for a subscriber that accepts every version of the type)."""

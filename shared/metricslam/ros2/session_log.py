@@ -7,6 +7,12 @@ disagreement, the health flag, and the back end's scale σ read when the record 
 the back end's typed events (:class:`~metricslam.slam.events.ScaleMeasured`,
 :class:`~metricslam.slam.events.ScaleHealthUpdated`) — never by wrapping the session's inputs.
 
+Frames: every pose, path and landmark cloud written while the session runs is in its own world
+frame (parent ``<cam>/world``): ``run --map`` places the session in the map only after the run.
+With a ``localization`` (``run --mcap --map``) that relocalized, :meth:`SessionRecorder.finish`
+writes one more, last path: the trajectory ``run`` writes to ``--out``, in the map frame (from
+the first localized frame on; parent frame ``map``).
+
 Example (what ``metricslam run SEQ --mcap run.mcap`` does)::
 
     with McapLog("run.mcap", "cam0") as log:
@@ -27,6 +33,7 @@ import numpy as np
 from metricslam.datasets.base import Frame
 from metricslam.ros2.mcap_log import McapLog
 from metricslam.slam.events import LoopAccepted, ScaleHealthUpdated, ScaleMeasured, Solved, WarpApplied, scale_record
+from metricslam.slam.map.localization import MAP_FRAME
 from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
@@ -36,7 +43,12 @@ log = logging.getLogger(__name__)
 def valid_trajectory(session: object) -> tuple[np.ndarray, np.ndarray]:
     """``(t_ns (N,), T_world_cam (N, 4, 4))`` of the frames of ``session.trajectory()`` that have
     a pose (own or interpolated; placeholders left out)."""
-    kept = [e for e in session.trajectory() if getattr(e, "pose_valid", True)]
+    return valid_poses(session.trajectory())
+
+
+def valid_poses(estimates: list[PoseEstimate]) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_ns (N,), T (N, 4, 4))`` of the ``estimates`` that have a pose, in their own frame."""
+    kept = [e for e in estimates if getattr(e, "pose_valid", True)]
     t_ns = np.array([e.t_ns for e in kept], dtype=np.int64)
     T = np.array([e.T_world_cam for e in kept], dtype=np.float64).reshape(len(kept), 4, 4)
     return t_ns, T
@@ -49,11 +61,14 @@ class SessionRecorder:
         mcap_log: the file.
         session: a :class:`~metricslam.slam.types.SlamSession`; its ``backend.events`` (if any)
             supply depth maps and say when the optimized trajectory changed.
+        localization: the session's :class:`~metricslam.slam.map.localization.MapLocalization`
+            (``run --map``): the final path in the map frame too (module docstring).
     """
 
-    def __init__(self, mcap_log: McapLog, session: object) -> None:
+    def __init__(self, mcap_log: McapLog, session: object, localization: object | None = None) -> None:
         self.log = mcap_log
         self.session = session
+        self._localization = localization
         self._path_dirty = threading.Event()
         self._last_t_ns = 0
         self._camera = None
@@ -94,12 +109,26 @@ class SessionRecorder:
             self.log.path(est.t_ns, *valid_trajectory(self.session))
 
     def finish(self) -> None:
-        """After the session closed: the final optimized path; stop listening to events."""
+        """After the session closed: the final optimized path (session world) and, when the
+        session relocalized into a ``localization``'s map, that path in the map frame (the last
+        path message); stop listening to events."""
         if self._events is not None:
             self._events.unsubscribe(self._on_depth)
             self._events.unsubscribe(self._on_change)
             self._events.unsubscribe(self._on_scale_health)
-        self.log.path(self._last_t_ns, *valid_trajectory(self.session))
+        trajectory = self.session.trajectory()
+        self.log.path(self._last_t_ns, *valid_poses(trajectory))
+        if self._localization is None:
+            return
+        try:
+            mapped = (self._localization.map_trajectory(trajectory)  # with the final solve's S_map_world
+                      if self._localization.refresh(force=True) is not None else [])
+        except Exception:  # noqa: BLE001 -- a run failing half way still gets its file closed
+            log.exception("mcap: the final path in the map frame could not be estimated")
+            return
+        t_ns, T_map_cam = valid_poses(mapped)
+        if len(t_ns):
+            self.log.path(self._last_t_ns, t_ns, T_map_cam, frame_id=MAP_FRAME)
 
     def close(self) -> None:
         """:meth:`finish`, then close the file (whatever happened: a run that failed half way

@@ -140,19 +140,20 @@ class Cameras:
     def closed_trajectory(self, camera_id: str) -> list[PoseEstimate] | None:
         """A closed camera's final trajectory while it is kept, else the one in ``state_dir``
         (e.g. from before a restart), else None."""
+        return self.closed_framed_trajectory(camera_id)[1]
+
+    def closed_framed_trajectory(self, camera_id: str) -> tuple[str, list[PoseEstimate] | None]:
+        """``(frame_id, poses)`` of :meth:`closed_trajectory`, read together: ``"map"`` when the
+        camera had relocalized into the service's map before it closed (kept in memory, or
+        stored in ``state_dir``: :meth:`TrajectoryStore.load_framed`), else ``"world"``."""
         self._expire(time.monotonic())
         with self._lock:
             entry = self._closed.get(camera_id)
+            frame_id = self._closed_frame_ids.get(camera_id, "world")
         if entry is not None:
-            return entry[1]
-        poses = self.store.load(camera_id) if self.store is not None else []
-        return poses or None
-
-    def closed_frame_id(self, camera_id: str) -> str:
-        """The frame id of :meth:`closed_trajectory` (``"world"`` unless the camera relocalized
-        into the service's map before it closed; a trajectory from ``state_dir`` says "world")."""
-        with self._lock:
-            return self._closed_frame_ids.get(camera_id, "world") if camera_id in self._closed else "world"
+            return frame_id, entry[1]
+        frame_id, poses = self.store.load_framed(camera_id) if self.store is not None else ("world", [])
+        return frame_id, poses or None
 
     def prior_poses(self, camera_id: str) -> list[PoseEstimate]:
         """What a new session of ``camera_id`` continues: its closed trajectory, else the one on
@@ -270,7 +271,7 @@ class Cameras:
                 self._closed_frame_ids[worker.camera_id] = frame_id
         if poses and self.store is not None:
             try:
-                self.store.rewrite(worker.camera_id, poses)
+                self.store.rewrite(worker.camera_id, poses, frame_id)
             except OSError as exc:
                 log.error("camera %s: cannot write its final trajectory: %s", worker.camera_id, exc)
         with self._lock:

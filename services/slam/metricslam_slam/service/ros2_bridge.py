@@ -57,7 +57,7 @@ from metricslam.camera import PinholeCamera
 from metricslam.errors import CodecError, ConfigError
 from metricslam.ros2 import messages
 from metricslam.ros2.rmw_zenoh import (
-    PUBLISHER, SUBSCRIPTION, Node, Qos, attachment, frame_ids, gid, ros_token, topic_key,
+    PUBLISHER, SUBSCRIPTION, Node, Qos, attachment, frame_ids, gid, parent_frame_id, ros_token, topic_key,
 )
 from metricslam.ros2.typestore import (
     CAMERA_INFO, IMAGE, ODOMETRY, PATH, POINT_CLOUD2, POSE_STAMPED, TF_MESSAGE, dds_type_name, deserialize,
@@ -155,8 +155,9 @@ class _CameraInput:
 
 
 def parent_frame(camera_id: str, message: Message) -> str:
-    """``map`` for a message in the saved map's frame, else the camera's ``<tok>/world``."""
-    return "map" if getattr(message, "frame_id", "world") == "map" else frame_ids(camera_id)[0]
+    """``map`` for a message in the saved map's frame, else the camera's ``<tok>/world``
+    (:func:`~metricslam.ros2.rmw_zenoh.parent_frame_id` of the message's ``frame_id``)."""
+    return parent_frame_id(camera_id, getattr(message, "frame_id", "world"))
 
 
 class Ros2Bridge:

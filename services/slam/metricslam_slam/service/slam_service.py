@@ -296,7 +296,7 @@ class SlamService:
             return
         worker = self._cameras.get(camera_id)
         frame_id, poses = (worker.framed_trajectory() if worker is not None
-                           else (self._cameras.closed_frame_id(camera_id), self._cameras.closed_trajectory(camera_id)))
+                           else self._cameras.closed_framed_trajectory(camera_id))
         if poses is None:
             if self._frame_keys.intersects(zenoh.KeyExpr(keys.key(camera_id, "frame"))):
                 query.reply_err(f"no SLAM session for camera {camera_id!r} (no frames yet)".encode())

@@ -127,21 +127,24 @@ def write_mcap(path: str | Path, camera_id: str, recorder, trajectory: Trajector
     received as an MCAP file, the layout ``metricslam run --mcap`` writes: every pose, keyframe
     images (when the service attaches them: ``--keyframe-images``), keyframe depth maps,
     landmarks, every ``…/path`` update and, when given, ``trajectory`` as the final path.
-    Messages are stamped (``log_time``) with their frame's ``t_ns``. Returns topic -> count."""
+    Messages are stamped (``log_time``) with their frame's ``t_ns``; each keeps its message's
+    ``frame_id`` (parent frame ``map`` once the camera relocalized into the service's map, else
+    ``<cam>/world``, as the live ROS 2 bridge names it). Returns topic -> count."""
     from metricslam.ros2.mcap_log import McapLog
 
     with McapLog(path, camera_id=camera_id) as log:
         for i in sorted(recorder.poses):
-            log.pose(recorder.poses[i].t_ns, recorder.poses[i].T_world_cam)
+            pose = recorder.poses[i]
+            log.pose(pose.t_ns, pose.T_world_cam, pose.frame_id)
         for kf in recorder.keyframes:
             if kf.image is not None:
                 log.keyframe_image(kf.t_ns, kf.image, None)
         for depth in recorder.depths:
             log.keyframe_depth(depth.t_ns, depth.inv_depth_per_m)
         for lm in recorder.landmarks:
-            log.landmarks(lm.t_ns, lm.points_world)
+            log.landmarks(lm.t_ns, lm.points_world, lm.frame_id)
         paths = list(recorder.paths) + ([trajectory] if trajectory is not None else [])
         for p in paths:
             if len(p.t_ns):
-                log.path(int(p.t_ns.max()), p.t_ns, p.T_world_cam)
+                log.path(int(p.t_ns.max()), p.t_ns, p.T_world_cam, p.frame_id)
         return dict(log.counts)

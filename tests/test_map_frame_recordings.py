@@ -1,0 +1,136 @@
+"""The map frame in MCAP recordings and in ``state_dir`` (docs/maps.md, "MCAP and state_dir").
+
+* :class:`McapLog` names a pose's parent frame as the live ROS 2 bridge does (one function,
+  :func:`~metricslam.ros2.rmw_zenoh.parent_frame_id`): ``map`` for ``frame_id="map"``;
+* ``run --mcap --map`` (:class:`SessionRecorder` with the run's localization): the live poses
+  stay in the session's world, the last path is the ``--out`` trajectory in the map frame;
+* :class:`TrajectoryStore` lines carry ``frame_id``; a line without one (written before) reads
+  back as ``"world"``.
+
+Over the service (``poses --mcap``, a restart with ``state_dir``): tests/test_slam_service_map_frames.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from metricslam.datasets.base import Frame
+from metricslam.slam.types import PoseEstimate, TrackingState
+from metricslam.wire.camera_messages import PoseMessage
+from metricslam_slam.service.sessions import IdentitySession
+from metricslam_slam.service.trajectory_store import TrajectoryStore
+from tests.ros2_cdr import CdrReader
+from tests.test_mcap_recording import read_mcap
+
+pytest.importorskip("mcap")
+SHIFT_M = 100.0  # the stand-in map frame is the session world moved 100 m along x
+
+
+def _T(x_m: float, z_m: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3], T[2, 3] = x_m, z_m
+    return T
+
+
+def _parents(topics: dict, topic: str) -> list[str]:
+    """Each message's ``header.frame_id`` (a TFMessage's: its one transform's)."""
+    parents = []
+    for m in topics[topic]:
+        r = CdrReader(m[2])
+        if topic == "/tf":
+            assert r.u32() == 1
+        parents.append(r.header()[2])
+    return parents
+
+
+def test_mcap_log_names_the_parent_frame_as_the_ros2_bridge_does(tmp_path: Path) -> None:
+    from metricslam.ros2.mcap_log import McapLog
+    from metricslam.wire.map_messages import LandmarksMessage
+    from metricslam_slam.service.ros2_bridge import parent_frame
+
+    with McapLog(tmp_path / "f.mcap", camera_id="cam-1") as log:
+        for i, frame_id in enumerate(("world", "map")):
+            log.pose(i, _T(i, 0.0), frame_id)
+            log.path(i, np.array([i]), _T(i, 0.0)[None], frame_id)
+            log.landmarks(i, np.zeros((2, 3)), frame_id)
+    topics = read_mcap(tmp_path / "f.mcap")
+    expected = ["cam_1/world", "map"]
+    for leaf in ("pose", "path", "landmarks"):
+        assert _parents(topics, f"/metricslam/cam_1/{leaf}") == expected, leaf
+    assert _parents(topics, "/tf") == expected
+    bridge = [parent_frame("cam-1", LandmarksMessage(camera_id="cam-1", frame_index=0, t_ns=0, frame_id=f,
+                                                     points_world=np.zeros((0, 3), np.float32)))
+              for f in ("world", "map")]
+    assert bridge == expected
+
+
+class _ShiftLocalization:
+    """Stands in for the run's :class:`MapLocalization` after it relocalized at frame 2: the map
+    frame is the world moved :data:`SHIFT_M` along x (what ``MapRun.finish`` would write)."""
+
+    first_frame = 2
+
+    def refresh(self, force: bool = False) -> np.ndarray:
+        S = np.eye(4)
+        S[0, 3] = SHIFT_M
+        return S
+
+    def map_trajectory(self, trajectory: list[PoseEstimate]) -> list[PoseEstimate]:
+        return [dataclasses.replace(e, T_world_cam=self.refresh() @ e.T_world_cam)
+                for e in trajectory if e.frame_index >= self.first_frame]
+
+
+def test_run_mcap_with_a_map_labels_the_final_map_frame_path_map(tmp_path: Path) -> None:
+    from metricslam.ros2.mcap_log import McapLog
+    from metricslam.ros2.session_log import SessionRecorder
+
+    session = IdentitySession()
+    with McapLog(tmp_path / "run.mcap", camera_id="cam0") as log:
+        recorder = SessionRecorder(log, session, _ShiftLocalization())
+        for i in range(5):
+            frame = Frame(index=i, t_ns=1_000 + i, image=None, camera=None)
+            recorder.after_frame(frame, session.process(frame))
+        session.close()
+        recorder.close()
+    topics = read_mcap(tmp_path / "run.mcap")
+    assert _parents(topics, "/metricslam/cam0/pose") == ["cam0/world"] * 5  # live: the session's world
+    paths = topics["/metricslam/cam0/path"]
+    assert [CdrReader(m[2]).header()[2] for m in paths[-2:]] == ["cam0/world", "map"]
+    r = CdrReader(paths[-1][2])
+    r.header()
+    n = r.u32()
+    stamps, xs = [], []
+    for _ in range(n):
+        stamps.append(r.header()[:2])
+        xs.append(r.pose()[0])
+    assert n == 3 and xs == [SHIFT_M] * 3  # frames 2..4, in the map frame: the --out trajectory
+
+
+def test_the_store_keeps_the_frame_id_and_reads_old_lines_as_world(tmp_path: Path) -> None:
+    store = TrajectoryStore(tmp_path)
+
+    def message(i: int, frame_id: str) -> PoseMessage:
+        return PoseMessage(camera_id="cam0", frame_index=i, t_ns=i, state="tracking", frame_id=frame_id,
+                           T_world_cam=_T(SHIFT_M if frame_id == "map" else 0.0, i))
+
+    for i, frame_id in enumerate(["world"] * 2 + ["map"] * 3):  # live lines of a session killed after relocalizing
+        store.append("cam0", message(i, frame_id))
+    store.close()
+    frame_id, poses = store.load_framed("cam0")
+    assert frame_id == "map" and [p.frame_index for p in poses] == [2, 3, 4]
+    store.rewrite("cam0", poses, "map")  # a clean close: the final trajectory
+    assert store.load_framed("cam0")[0] == "map" and len(store.load("cam0")) == 3
+    # a file written before lines carried frame_id
+    old = {"frame_index": 0, "t_ns": 0, "state": "tracking", "segment_id": 0, "is_keyframe": False,
+           "scale_established": True, "pose_valid": True, "T_world_cam": np.eye(4).reshape(16).tolist()}
+    store.path("cam1").write_text(json.dumps(old) + "\n")
+    frame_id, poses = store.load_framed("cam1")
+    assert frame_id == "world" and len(poses) == 1
+    est = PoseEstimate(0, 0, np.eye(4), TrackingState.TRACKING)
+    store.rewrite("cam2", [est])
+    assert json.loads(store.path("cam2").read_text())["frame_id"] == "world"
