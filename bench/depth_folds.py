@@ -32,7 +32,7 @@ from bench.machine import command_line, describe, write_results
 from metricslam.depth import DEFAULT_MODEL_PATH
 
 #: the recipes with committed rules
-RECIPES = ("v4", "v5", "v6")
+RECIPES = ("v4", "v5", "v6", "v7")
 #: fold name -> (run prefix after "<recipe>_", kind, sequence folder, ground truth) relative to --data
 FOLDS = {
     "06": ("all", "slam", "kitti_odometry/sequences/06", "kitti_odometry/poses/06.txt"),
