@@ -208,7 +208,7 @@ def decision_line(report: dict) -> str:
             + f"; the candidate's form: **{dec['ship']}**; its worst fold {dec['candidate_worst_pct']:.1f} % against the default's "
             f"{dec['default_worst_pct']:.1f} % on the same folds" + (
                 "; under rule_depth_ship.md that does not decide: the all-drive candidate ships if its int8 copy "
-                "meets the KITTI-06 guard (`bench/results/accuracy_shipped.md`)." if dec["replaces_default"] is None
+                f"meets the KITTI-06 guard (`bench/results/depth_{report.get('recipe')}_ship_guard.md`)." if dec["replaces_default"] is None
                 else ": replaces the default." if dec["replaces_default"] else ": does NOT replace the default."))
 
 
