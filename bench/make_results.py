@@ -226,9 +226,9 @@ def build() -> tuple[str, str]:
         page += ["## Depth v3 final retrain (training data + 0013), checked on KITTI 06", "",
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
-    for name, what in (("v4_folds", "v4, every real drive"), ("v5_folds", "v5, every real drive and the six rendered "
-                       "streets"), ("v6_folds", "v6, every real drive and 30 rendered streets"),
-                       ("v5_ship", "v5 as shipped: its all-drive runs, under rule_depth_ship.md")):
+    for name, what in (("v4_folds", "v4, every real drive"), ("v5_folds", "v5, v4 + six rendered streets"),
+                       ("v6_folds", "v6, v4 + 30 rendered streets"), ("v7_folds", "v7, v4 under contract v2"),
+                       ("v5_ship", "v5 ship attempt: its all-drive runs, under rule_depth_ship.md")):
         folds = _load(f"depth_{name}.json")
         if folds:
             page += [f"## Depth {what}: leave-one-drive-out folds, seeds and their ensemble (issue #31)", "",
