@@ -259,8 +259,8 @@ def _table(d: dict) -> list[str]:
 def render(r: dict, command: str, machine: str) -> str:
     io, rv, k = r["io"], r["rendered"], r["kitti06"]
     lines = ["# Saved maps: size, save/load time, relocalization", "",
-             f"Command: `{command}`  ", f"Machine: {machine}. Other jobs (depth-network training, "
-             "test runs) shared the 2 CPU cores, so the times are pessimistic.", "",
+             f"Command: `{command}`  ", f"Machine: {machine} (the load average says whether other jobs "
+             "shared the CPU while it ran).", "",
              "## Size and I/O per 1,000 keyframes", "",
              f"{io['keyframes']} keyframes ({io['bow_rows']} loop-database rows, {io['features']} features): "
              f"**{io['mb']:.1f} MB**, save **{io['save_s_median']:.2f} s**, load **{io['load_s_median']:.2f} s** "

@@ -116,13 +116,19 @@ def test_native_messages_carry_the_frame_id_and_the_odometry_starts_over(stack) 
     recorder.close()
 
 
+def _drive_until_closed(client, n_frames: int) -> PoseRecorder:
+    """Publish ``n_frames`` on cam0 and wait until the idle camera session closed."""
+    recorder = PoseRecorder(client, "cam0")
+    time.sleep(0.3)
+    _publish(client, n_frames)
+    assert recorder.wait_for(lambda r: any(s.event == "camera_closed" for s in r.statuses), 20)
+    return recorder
+
+
 @pytest.mark.parametrize("stack", [{"camera_idle_timeout_s": 0.5}], indirect=True)
 def test_a_closed_cameras_trajectory_keeps_its_map_frame_id(stack) -> None:
     client, _ = stack
-    recorder = PoseRecorder(client, "cam0")
-    time.sleep(0.3)
-    _publish(client, 5)
-    assert recorder.wait_for(lambda r: any(s.event == "camera_closed" for s in r.statuses), 20)
+    recorder = _drive_until_closed(client, 5)
     traj = query_trajectory(client, "cam0")
     assert traj.frame_id == "map" and list(traj.frame_index) == list(range(SWITCH, 5))
     recorder.close()
@@ -183,10 +189,7 @@ def test_poses_mcap_keeps_each_messages_frame(stack, tmp_path) -> None:
 @pytest.mark.parametrize("stack", [{"camera_idle_timeout_s": 0.5, "state_dir": True}], indirect=True)
 def test_a_restarted_service_answers_the_stored_trajectory_in_the_map_frame(stack) -> None:
     client, svc = stack
-    recorder = PoseRecorder(client, "cam0")
-    time.sleep(0.3)
-    _publish(client, 5)
-    assert recorder.wait_for(lambda r: any(s.event == "camera_closed" for s in r.statuses), 20)
+    recorder = _drive_until_closed(client, 5)
     recorder.close()
     svc.stop()  # the final trajectory is in state_dir; the next service has nothing in memory
     restarted = _start(svc.settings)
