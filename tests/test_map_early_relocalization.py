@@ -26,7 +26,7 @@ def _bare_relocalizer(window: SlidingWindow, T_map_mapkf: np.ndarray) -> Relocal
     r = Relocalizer.__new__(Relocalizer)  # no saved map needed for the bookkeeping under test
     r._T_map_kf = {7: T_map_mapkf}
     r._window = window
-    r.matches, r.version, r.first_frame, r.early_done = [], 0, None, False
+    r.matches, r.version, r.first_frame, r._metric_map = [], 0, None, True
     return r
 
 
@@ -68,16 +68,24 @@ def test_an_early_match_implies_the_same_map_frame_before_and_after_warps_and_ma
     assert np.isclose(sim3.scale(r.matches[0].S_mapkf_kf), 7.5 / (3.0 * 0.8))
 
 
-def test_a_later_query_of_the_same_keyframe_replaces_its_early_match():
+def test_a_later_query_of_the_same_keyframe_replaces_its_early_match_and_two_keyframes_must_agree():
     window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
     r = _bare_relocalizer(window, np.eye(4))
-    early = RelocMatch(7, 12, 14, np.eye(4), 40, 0.3, np.eye(4), 0)
-    later = RelocMatch(7, 12, 30, np.eye(4), 200, 0.3)
-    other = RelocMatch(7, 15, 31, np.eye(4), 90, 0.3)
-    for m in (early, later, other):
-        r._record(m)
-    assert [m.n_inliers for m in r.matches] == [200, 90]
-    assert r.first_frame == 14 and r.version == 3  # relocalized from the early match's frame on
+    T_vo_12, T_vo_15 = se3.from_rt(np.eye(3), np.array([0.0, 0.0, 1.0])), se3.from_rt(np.eye(3), np.array([0.0, 0.0, 2.5]))
+    S_map_world = sim3.from_rts(so3.exp(np.array([0.0, 0.2, 0.0])), np.array([3.0, 0.0, 30.0]), 1.0)
+    # each match: S_mapkf_kf = T_map_mapkf⁻¹ · S_map_world · S_world_kf (map keyframe 7 at the origin)
+    early = RelocMatch(7, 12, 14, S_map_world @ sim3.from_se3(T_vo_12), 40, 0.3, sim3.from_se3(T_vo_12), 0)
+    later = RelocMatch(7, 12, 30, S_map_world @ sim3.from_se3(T_vo_12), 200, 0.3, sim3.from_se3(T_vo_12), 0)
+    far_off = RelocMatch(7, 13, 31, sim3.from_rts(np.eye(3), np.array([9.0, 0.0, 0.0]), 1.0) @ S_map_world
+                         @ sim3.from_se3(T_vo_15), 30, 0.3, sim3.from_se3(T_vo_15), 0)
+    agrees = RelocMatch(7, 15, 33, S_map_world @ sim3.from_se3(T_vo_15), 90, 0.3, sim3.from_se3(T_vo_15), 0)
+    r._record(early)
+    r._record(later)  # the same keyframe: replaces, still one keyframe
+    assert [m.n_inliers for m in r.matches] == [200] and r.first_frame is None
+    r._record(far_off)  # 9 m off: two keyframes, but they do not agree
+    assert r.first_frame is None
+    r._record(agrees)
+    assert r.first_frame == 33 and r.version == 4  # relocalized once two keyframes agree
 
 
 def test_settled_events_are_built_only_for_subscribers():

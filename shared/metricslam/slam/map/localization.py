@@ -31,17 +31,15 @@ from metricslam.datasets.base import Frame
 from metricslam.slam.events import Solved
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.map.format import SavedMap, load_map, save_map
-from metricslam.slam.map.relocalizer import Relocalizer, to_map_frame
+from metricslam.slam.map.relocalizer import MIN_AGREEING_MATCHES, Relocalizer, to_map_frame
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
 
 #: the frame ids a pose can be in: the session's own world frame, or the loaded map's
 WORLD_FRAME, MAP_FRAME = "world", "map"
-#: agreeing matches before a live session switches to the map frame: one match alone was off by
-#: ~9 m in position on the rendered revisit (a far view of the map's first keyframe), two agreed
-#: with the final estimate within ~2 m
-MIN_LIVE_MATCHES = 2
+#: agreeing matches before a live session switches to the map frame (the relocalizer's own rule)
+MIN_LIVE_MATCHES = MIN_AGREEING_MATCHES
 
 
 def open_map(path: str | Path, camera: PinholeCamera, depth_model_id: str | None) -> SavedMap:
@@ -117,7 +115,7 @@ class MapLocalization:
 
     @property
     def first_frame(self) -> int | None:
-        """The frame being processed when the first match verified (None: not yet)."""
+        """The frame being processed when enough matches first agreed (None: not yet)."""
         return self.relocalizer.first_frame
 
     def refresh(self, force: bool = False) -> np.ndarray | None:
@@ -134,7 +132,6 @@ class MapLocalization:
             self._n_matches = n
             if S is not None:
                 self.S_map_world, self.matches_used, self.matches_rejected = S, used, rejected
-                self.relocalizer.early_done = used >= MIN_LIVE_MATCHES
             return self.S_map_world
 
     def map_trajectory(self, trajectory: list[PoseEstimate]) -> list[PoseEstimate]:

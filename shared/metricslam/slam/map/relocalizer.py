@@ -23,8 +23,8 @@ with ``S_world_kf`` the session's global-graph estimate of that keyframe. Becaus
 metric, this carries metric scale into the session even before its own learned scale engaged.
 :meth:`Relocalizer.S_map_world` combines every verified match against the *final* graph (a
 robust mean around the medoid; matches that disagree are counted as rejected). The session
-counts as relocalized from the frame being processed when the first match verified
-(``first_frame``); frames before it are reported as not localized, never given a pose.
+counts as relocalized from the frame being processed when :data:`MIN_AGREEING_MATCHES` matches
+first agreed (``first_frame``); frames before it are reported as not localized, never given a pose.
 """
 
 from __future__ import annotations
@@ -53,9 +53,13 @@ log = logging.getLogger(__name__)
 
 #: two matches agree (:func:`close`) within these: metres, radians, |log scale|
 GATE_M, GATE_RAD, GATE_LOG_SCALE = 2.0, 0.1, 0.1
-#: early queries (keyframes still in the VO window) stop once this many matches verified, or when
-#: the owner says the session is placed (``early_done``); each asks the depth source for the
-#: keyframe (waiting at most this long, on the tracking thread)
+#: verified matches (of different session keyframes) that must agree before the session counts as
+#: relocalized: one match alone was off by ~9 m in position on the rendered revisit (a far view of
+#: the map's first keyframe), two agreed with the final estimate within ~2 m
+MIN_AGREEING_MATCHES = 2
+#: early queries (keyframes still in the VO window) stop once this many matches verified, or once
+#: the session is relocalized; each asks the depth source for the keyframe (waiting at most this
+#: long, on the tracking thread)
 EARLY_MATCHES, EARLY_DEPTH_TIMEOUT_S = 6, 1.0
 
 
@@ -91,6 +95,7 @@ class Relocalizer:
         self.camera = camera
         kf, db = saved.arrays["keyframes"], saved.arrays["loop_db"]
         self._T_map_kf = {int(k): T for k, T in zip(kf["kf_id"], kf["T_map_kf"])}
+        self._metric_map = bool(saved.metric)
         self._vocab = BinaryVocabulary(db["vocabulary_words"], db["vocabulary_idf"])
         self._ids = db["bow_kf_id"]
         self._rows = db["bow_rows"]
@@ -112,7 +117,6 @@ class Relocalizer:
         self._window = None  # the session VO's sliding window (its warps), once attached
         self.matches: list[RelocMatch] = []
         self.version = 0  # bumped whenever ``matches`` changes (a new list each time)
-        self.early_done = False  # set by the owner once enough matches agree (no more early queries)
         #: keyframe frame index -> its bag-of-words row (K,) in the MAP's vocabulary (a merged map
         #: indexes the session's keyframes with them, :mod:`metricslam.slam.map.merge`)
         self.bow_by_frame: dict[int, np.ndarray] = {}
@@ -126,11 +130,12 @@ class Relocalizer:
         self._depth_source = getattr(session.backend, "depth_source", None)
         self._with_depth = self._depth_source is not None
         self._window = session.vo.window
+        self._backend = session.backend
         session.backend.events.subscribe(self._on_event, KeyframeMarginalized, ScaleMeasured, KeyframeSettled)
 
     def _on_event(self, ev) -> None:
         if isinstance(ev, KeyframeSettled):
-            if not self.early_done and len(self.matches) < EARLY_MATCHES:
+            if self.first_frame is None and len(self.matches) < EARLY_MATCHES:
                 kf = ev.keyframe
                 inv_depth = (None if self._depth_source is None else
                              ask_depth(self._depth_source, kf.image, kf.camera, EARLY_DEPTH_TIMEOUT_S)[0])
@@ -160,10 +165,18 @@ class Relocalizer:
         self.matches = ([*self.matches[:same[0]], match, *self.matches[same[0] + 1:]] if same
                         else [*self.matches, match])  # a new list: readers on other threads
         self.version += 1
-        if self.first_frame is None:
+        if self.first_frame is None and self._agreeing() >= MIN_AGREEING_MATCHES:
             self.first_frame = match.frame_now
             log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
-                     "(%d inliers)", match.frame_now, match.kf_frame, match.map_kf_id, match.n_inliers)
+                     "(%d inliers; %d matches agree)", match.frame_now, match.kf_frame, match.map_kf_id,
+                     match.n_inliers, self._agreeing())
+
+    def _agreeing(self) -> int:
+        """How many matches agree with their medoid against the back end's latest solve."""
+        backend = getattr(self, "_backend", None)
+        poses = {} if backend is None else backend.optimized_keyframe_poses()
+        metric = self._metric_map and bool(getattr(backend, "scale_established", False))
+        return self.S_map_world(poses, metric_world=metric)[1]
 
     def _settle(self, kf) -> None:
         """``kf`` leaves the VO window: re-express its early match in the VO units it is
