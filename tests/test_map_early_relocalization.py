@@ -25,7 +25,7 @@ CAMERA = PinholeCamera(fx_px=700.0, fy_px=700.0, cx_px=320.0, cy_px=180.0, width
 def _bare_relocalizer(window: SlidingWindow, T_map_mapkf: np.ndarray) -> Relocalizer:
     r = Relocalizer.__new__(Relocalizer)  # no saved map needed for the bookkeeping under test
     r._T_map_kf = {7: T_map_mapkf}
-    r._window = window
+    r._window, r._backend = window, None
     r.matches, r.version, r.first_frame, r._metric_map = [], 0, None, True
     return r
 

@@ -115,6 +115,7 @@ class Relocalizer:
         self._rng = np.random.default_rng(seed)
         self._prev_bow: dict[bool, np.ndarray] = {}  # early?: the previous query's row (score ratio)
         self._window = None  # the session VO's sliding window (its warps), once attached
+        self._backend = None  # the session's back end (its latest solve), once attached
         self.matches: list[RelocMatch] = []
         self.version = 0  # bumped whenever ``matches`` changes (a new list each time)
         #: keyframe frame index -> its bag-of-words row (K,) in the MAP's vocabulary (a merged map
@@ -165,17 +166,16 @@ class Relocalizer:
         self.matches = ([*self.matches[:same[0]], match, *self.matches[same[0] + 1:]] if same
                         else [*self.matches, match])  # a new list: readers on other threads
         self.version += 1
-        if self.first_frame is None and self._agreeing() >= MIN_AGREEING_MATCHES:
+        if self.first_frame is None and (agree := self._agreeing()) >= MIN_AGREEING_MATCHES:
             self.first_frame = match.frame_now
             log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
                      "(%d inliers; %d matches agree)", match.frame_now, match.kf_frame, match.map_kf_id,
-                     match.n_inliers, self._agreeing())
+                     match.n_inliers, agree)
 
     def _agreeing(self) -> int:
         """How many matches agree with their medoid against the back end's latest solve."""
-        backend = getattr(self, "_backend", None)
-        poses = {} if backend is None else backend.optimized_keyframe_poses()
-        metric = self._metric_map and bool(getattr(backend, "scale_established", False))
+        poses = {} if self._backend is None else self._backend.optimized_keyframe_poses()
+        metric = self._metric_map and bool(getattr(self._backend, "scale_established", False))
         return self.S_map_world(poses, metric_world=metric)[1]
 
     def _settle(self, kf) -> None:
