@@ -95,3 +95,24 @@ def test_settled_events_are_built_only_for_subscribers():
     assert not bus.wants(KeyframeSettled)
     bus.subscribe(lambda ev: None, KeyframeSettled)
     assert bus.wants(KeyframeSettled)
+
+
+def test_before_metric_scale_two_matches_agree_on_where_they_place_the_keyframes_not_the_origin():
+    """Pre-metric, each match's scale is one view's network depth: two matches of keyframes near
+    each other that place both within the gate agree although their scales differ by 40 % (the
+    former rule, origins and a 10 % scale gate, refused them); a match that places the keyframes
+    metres apart does not agree."""
+    window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
+    r = _bare_relocalizer(window, np.eye(4))
+    kf_a, kf_b = se3.from_rt(np.eye(3), np.array([0.0, 0.0, 1.0])), se3.from_rt(np.eye(3), np.array([0.0, 0.0, 1.5]))
+    far = np.array([0.0, 0.0, 30.0])  # the session's origin is 30 units behind its keyframes
+
+    def match(frame, T_vo_kf, s, shift=0.0):  # S_map_world = translate(far) · scale(s)
+        S_map_world = sim3.from_rts(np.eye(3), far + np.array([shift, 0.0, 0.0]), s)
+        return RelocMatch(7, frame, frame, S_map_world @ sim3.from_se3(T_vo_kf), 50, 1.0,
+                          S_world_kf_vo=sim3.from_se3(T_vo_kf), warp_generation=0)
+
+    r.matches = [match(3, kf_a, 2.0), match(5, kf_b, 2.8)]
+    assert r.S_map_world({}, metric_world=False)[1] == 2  # 0.8 m apart at kf_a, 1.2 m at kf_b
+    r.matches = [match(3, kf_a, 2.0), match(5, kf_b, 2.0, shift=2.5)]
+    assert r.S_map_world({}, metric_world=False)[1] == 1  # 2.5 m apart wherever they are applied

@@ -51,8 +51,13 @@ from metricslam.slam.map.format import SavedMap
 
 log = logging.getLogger(__name__)
 
-#: two matches agree (:func:`close`) within these: metres, radians, |log scale|
+#: two matches agree (:func:`close`) within these: metres (where they place the session's
+#: keyframes in the map), radians, |log scale|
 GATE_M, GATE_RAD, GATE_LOG_SCALE = 2.0, 0.1, 0.1
+#: |log scale| gate while the session's world is not metric yet: each match's scale is then one
+#: keyframe's network depth (±20-40 % from one view), so only a factor of two is refused; where
+#: the matches place the session's keyframes (``GATE_M``) still has to agree
+GATE_LOG_SCALE_PREMETRIC = float(np.log(2.0))
 #: verified matches (of different session keyframes) that must agree before the session counts as
 #: relocalized: one match alone was off by ~9 m in position on the rendered revisit (a far view of
 #: the map's first keyframe), two agreed with the final estimate within ~2 m
@@ -265,15 +270,19 @@ class Relocalizer:
         measured on the rendered revisit), so ``S_map_world`` is rigid: the map is metric, so
         is the session. Otherwise the network-depth scale carries the map's metres into the
         session (its first relocalized frame inherits metric scale)."""
-        cands = [c for _, c in self.candidates(S_world_kf_by_frame, metric_world)]
+        cands = [(S, S_world_kf[:3, 3]) for _, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)]
         if not cands:
             return None, 0, len(self.matches)
-        gates = (gate_m, gate_rad, gate_log_scale)
-        support = [sum(close(a, b, *gates) for b in cands) for a in cands]
+        gates = (gate_m, gate_rad, gate_log_scale if metric_world else max(gate_log_scale, GATE_LOG_SCALE_PREMETRIC))
+
+        def agree(a, b) -> bool:  # where both place the two matched keyframes, and how
+            return close(a[0], b[0], *gates, at_world=np.stack([a[1], b[1]]))
+
+        support = [sum(agree(a, b) for b in cands) for a in cands]
         medoid = cands[int(np.argmax(support))]
-        kept = [c for c in cands if close(medoid, c, *gates)]
-        mean = np.mean([sim3.local(medoid, c) for c in kept], axis=0)
-        return sim3.retract(medoid, mean), len(kept), len(self.matches) - len(kept)
+        kept = [c[0] for c in cands if agree(medoid, c)]
+        mean = np.mean([sim3.local(medoid[0], c) for c in kept], axis=0)
+        return sim3.retract(medoid[0], mean), len(kept), len(self.matches) - len(kept)
 
     def measured_S_mapkf_kf(self, m: RelocMatch, S_world_kf: np.ndarray, metric_world: bool) -> np.ndarray:
         """The match's ``S_mapkf_kf`` (4, 4), its scale the session graph's when ``metric_world``
@@ -286,6 +295,11 @@ class Relocalizer:
     def candidates(self, S_world_kf_by_frame: dict[int, np.ndarray],
                    metric_world: bool = False) -> list[tuple[RelocMatch, np.ndarray]]:
         """``(match, S_map_world it implies)`` for every match whose keyframe is in the graph."""
+        return [(m, S) for m, S, _ in self._candidates(S_world_kf_by_frame, metric_world)]
+
+    def _candidates(self, S_world_kf_by_frame: dict[int, np.ndarray],
+                    metric_world: bool) -> list[tuple[RelocMatch, np.ndarray, np.ndarray]]:
+        """:meth:`candidates` with each match's ``S_world_kf`` (4, 4)."""
         out = []
         for m in self.matches:
             S_world_kf = S_world_kf_by_frame.get(m.kf_frame)
@@ -293,16 +307,21 @@ class Relocalizer:
                 S_world_kf = self._window.warp_since(m.warp_generation) @ m.S_world_kf_vo
             if S_world_kf is not None:
                 T = sim3.from_se3(self._T_map_kf[m.map_kf_id])
-                out.append((m, T @ self.measured_S_mapkf_kf(m, S_world_kf, metric_world) @ sim3.inverse(S_world_kf)))
+                out.append((m, T @ self.measured_S_mapkf_kf(m, S_world_kf, metric_world) @ sim3.inverse(S_world_kf),
+                            S_world_kf))
         return out
 
 
 def close(a: np.ndarray, b: np.ndarray, gate_m: float = GATE_M, gate_rad: float = GATE_RAD,
-          gate_log_scale: float = GATE_LOG_SCALE) -> bool:
-    """Two Sim(3) (4, 4) within ``gate_m`` metres, ``gate_rad`` and ``gate_log_scale`` of each other."""
-    Ra, ta, sa = sim3.split(a)
-    Rb, tb, sb = sim3.split(b)
-    return (np.linalg.norm(ta - tb) < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
+          gate_log_scale: float = GATE_LOG_SCALE, at_world: np.ndarray | None = None) -> bool:
+    """Two Sim(3) ``S_map_world`` (4, 4) within ``gate_rad`` and ``gate_log_scale`` of each other
+    that place each point of ``at_world`` (N, 3, world units; None: the world origin) within
+    ``gate_m`` metres of each other in the map."""
+    Ra, _, sa = sim3.split(a)
+    Rb, _, sb = sim3.split(b)
+    p = np.zeros((1, 3)) if at_world is None else np.asarray(at_world, float).reshape(-1, 3)
+    gap_m = np.linalg.norm(sim3.transform_points(a, p) - sim3.transform_points(b, p), axis=1).max()
+    return (gap_m < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
             and abs(np.log(sa / sb)) < gate_log_scale)
 
 
