@@ -48,11 +48,8 @@ METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 METRIC_KEYS = ("t_rel_pct", "r_rel_deg_per_100m", "ate_rmse_m", "ate_rmse_sim3_m", "scale_ratio",
                "scale_error_pct")
 VARIANTS = ("metric", "noscale", "noscale_sim3")
-VARIANT_LABEL = {
-    "metric": "metricslam (learned scale, no GT)",
-    "noscale": "--no-scale, as run",
-    "noscale_sim3": "--no-scale + Sim(3) oracle alignment",
-}
+VARIANT_LABEL = {"metric": "metricslam (learned scale, no GT)", "noscale": "--no-scale, as run",
+                 "noscale_sim3": "--no-scale + Sim(3) oracle alignment"}
 
 
 def code_description() -> str:
@@ -60,8 +57,7 @@ def code_description() -> str:
     the checkout's commit; set ``METRICSLAM_CODE_NOTE`` to say where a snapshot came from."""
     where = subprocess.run([sys.executable, "-c", "import metricslam; print(metricslam.__file__)"],
                            capture_output=True, text=True).stdout.strip()
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     note = os.environ.get("METRICSLAM_CODE_NOTE", "")
     return f"metricslam imported from {where}; checkout HEAD {head or '?'}" + (f"; {note}" if note else "")
 
@@ -81,9 +77,8 @@ def run_slam(name: str, seq_dir: str, no_scale: bool, workdir: Path, repeat: int
     e.g. ``--deterministic``)."""
     tag = f"{name}_{'noscale' if no_scale else 'metric'}" + (f"_r{repeat}" if repeat else "")
     est, stats = workdir / f"{tag}.txt", workdir / f"{tag}_stats.json"
-    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress", *run_args]
-    if no_scale:
-        cmd.append("--no-scale")
+    cmd = METRICSLAM + ["run", seq_dir, "--out", str(est), "--json", str(stats), "--no-progress", *run_args,
+                        *(["--no-scale"] if no_scale else [])]
     proc = _run(cmd)
     out = {"command": _shown(cmd), "est": str(est), "stats_json": str(stats)}
     if proc.returncode != 0:
@@ -127,8 +122,7 @@ def summarize(results: list[dict]) -> dict:
     out)."""
     out = {}
     for key in METRIC_KEYS:
-        vals = [float(r[key]) for r in results if isinstance(r.get(key), (int, float))
-                and np.isfinite(r[key])]
+        vals = [float(r[key]) for r in results if isinstance(r.get(key), (int, float)) and np.isfinite(r[key])]
         out[key] = {"mean": float(np.mean(vals)) if vals else None,
                     "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
                     "n": len(vals), "values": vals}
@@ -186,8 +180,7 @@ def render_markdown(report: dict) -> str:
             lens_txt = f"{lens[0]:.0f}–{lens[-1]:.0f}" if lens else "none fits"
             fails = "" if len(ok) == len(evs) else f" ({len(evs) - len(ok)} of {len(evs)} runs failed)"
             lines.append(f"| {s['name']} | {s['trained_on']} | {m.get('n_frames')} | "
-                         f"{_f(m.get('path_length_m'), '.1f')} | {lens_txt} | {v}{fails} | "
-                         f"{metric_cells(ok)} |")
+                         f"{_f(m.get('path_length_m'), '.1f')} | {lens_txt} | {v}{fails} | {metric_cells(ok)} |")
     for group, pooled in report["pooled"].items():
         reps = report["pooled_repeats"][group]
         lines += ["", f"## Pooled over {group}: {', '.join(pooled['sequences']) or 'none'}", "",
@@ -207,8 +200,7 @@ def render_markdown(report: dict) -> str:
             lines.append(f"| {v} | pooled | {metric_cells(results)} |")
             lines.append(f"| {v} | mean of sequences | "
                          f"{metric_cells([r.get('mean_of_sequences', {}) for r in results])} |")
-        lines += ["", "Pooled eval commands" + (" (repeat 1; the others alike)" if n_rep > 1 else "")
-                  + ":", ""]
+        lines += ["", "Pooled eval commands" + (" (repeat 1; the others alike)" if n_rep > 1 else "") + ":", ""]
         lines += [f"* {v}: `{pooled[v]['command']}`" for v in VARIANTS if v in pooled]
     lines += ["", "## Run commands", ""]
     for s in report["sequences"]:
@@ -216,8 +208,7 @@ def render_markdown(report: dict) -> str:
             for r in rep["runs"].values():
                 st = r.get("stats", {})
                 lines.append(f"* {'' if n_rep == 1 else f'run {k}: '}`{r['command']}` — "
-                             f"{_f(st.get('fps'), '.1f')} frames/s, "
-                             f"{st.get('keyframes', '—')} keyframes, "
+                             f"{_f(st.get('fps'), '.1f')} frames/s, {st.get('keyframes', '—')} keyframes, "
                              f"{st.get('tracking_losses', '—')} tracking losses"
                              + (f", FAILED: {r['error'].splitlines()[-1][:200]}" if "error" in r else ""))
     lines += ["", "## Notes", ""] + [f"* {n}" for n in report["notes"]]
@@ -304,17 +295,15 @@ def main(argv: list[str] | None = None) -> int:
                                       if "result" in r["eval"].get(v, {})]) for v in VARIANTS}
         report["sequences"].append(s)
     groups = {"all sequences": report["sequences"],
-              "sequences the depth network never saw": [s for s in report["sequences"]
-                                                        if s["trained_on"] == "no"]}
+              "sequences the depth network never saw": [s for s in report["sequences"] if s["trained_on"] == "no"]}
     report["pooled"], report["pooled_repeats"], report["pooled_summary"] = {}, {}, {}
     for group, seqs in groups.items():
         tag = "all" if group == "all sequences" else "heldout"
         reps = [pool(seqs, k, tag, workdir, n_rep) for k in range(n_rep)]
         report["pooled"][group] = reps[0]
         report["pooled_repeats"][group] = reps
-        report["pooled_summary"][group] = {
-            v: summarize([r[v]["result"] for r in reps if "result" in r.get(v, {})])
-            for v in VARIANTS}
+        report["pooled_summary"][group] = {v: summarize([r[v]["result"] for r in reps if "result" in r.get(v, {})])
+                                           for v in VARIANTS}
     out = Path(args.out)
     write_results(out, report, render_markdown(report))
     print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")

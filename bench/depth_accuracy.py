@@ -40,13 +40,9 @@ from metricslam.stereo import block_matching_pair  # the matcher of the training
 def metrics(pred_m: np.ndarray, true_m: np.ndarray) -> dict[str, float]:
     """Standard single-image depth metrics over matched samples (both (N,) metres)."""
     ratio = pred_m / true_m
-    return {
-        "median_ratio": float(np.median(ratio)),
-        "abs_rel": float(np.mean(np.abs(pred_m - true_m) / true_m)),
-        "rmse_m": float(np.sqrt(np.mean((pred_m - true_m) ** 2))),
-        "delta_1_25": float(np.mean(np.maximum(ratio, 1 / ratio) < 1.25)),
-        "n_pixels": int(true_m.size),
-    }
+    return {"median_ratio": float(np.median(ratio)), "abs_rel": float(np.mean(np.abs(pred_m - true_m) / true_m)),
+            "rmse_m": float(np.sqrt(np.mean((pred_m - true_m) ** 2))),
+            "delta_1_25": float(np.mean(np.maximum(ratio, 1 / ratio) < 1.25)), "n_pixels": int(true_m.size)}
 
 
 def flat_road_depth(v_px: np.ndarray, fy_px: float, cy_px: float, camera_height_m: float,
@@ -224,7 +220,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--texture-min", type=float, default=40.0, help="Sobel magnitude for 'textured' pixels")
     p.add_argument("--out", help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
-
     data = Path(args.data)
     model = DepthModel.load(args.model, threads=1)
     results = {"command": command_line("bench.depth_accuracy", argv), "model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,

@@ -104,11 +104,8 @@ def run_level(port: int, frames: list[bytes], clients: int, binary: bool, total:
     latencies: list[float] = []
     statuses: dict[int, int] = {}
     lock = threading.Lock()
-    threads = [
-        threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses, lock,
-                                               media_type, fx_px))
-        for k in range(clients)
-    ]
+    threads = [threading.Thread(target=_client, args=(port, frames, binary, per_client, k * 7, latencies, statuses,
+                                                      lock, media_type, fx_px)) for k in range(clients)]
     server_cpu0, client_cpu0 = cpu_seconds(server_pid), time.process_time()
     t0 = time.perf_counter()
     for t in threads:
@@ -137,7 +134,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--json", type=Path, default=None, help="write raw numbers as JSON here")
     args = parser.parse_args(argv)
-
     paths = sorted(args.frames.glob("*.png"))
     if not paths:
         print(f"no PNG frames in {args.frames}; pass --frames to a KITTI image_0 folder", file=sys.stderr)
@@ -150,14 +146,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.media == "pgm":
         frames = [encode_pgm(g) for g in gray]
     fx_px = FX_PX
-
     server_settings: dict[str, object] = {"max_queue": 256, "max_connections": 512}
-    if args.threads is not None:
-        server_settings["threads"] = args.threads
-    if args.max_concurrency is not None:
-        server_settings["max_concurrency"] = args.max_concurrency
-    if args.batch_window_ms is not None:
-        server_settings["batch_window_ms"] = args.batch_window_ms
+    for key in ("threads", "max_concurrency", "batch_window_ms"):
+        if getattr(args, key) is not None:
+            server_settings[key] = getattr(args, key)
     load_before = os.getloadavg()
     results: list[RunResult] = []
     soak: dict[str, object] = {}
@@ -194,15 +186,12 @@ def main(argv: list[str] | None = None) -> int:
                 for code, n in r.statuses.items():
                     soak_statuses[code] = soak_statuses.get(code, 0) + n
                 samples.append((done, rss_mib(service.pid)))
-            soak = {
-                "requests": done, "clients": args.soak_clients, "seconds": time.perf_counter() - t0,
-                "rss_before_mib": rss_before, "rss_after_mib": samples[-1][1], "rss_samples": samples,
-                "statuses": soak_statuses, "p50_ms": float(np.percentile(soak_lat, 50)),
-                "p99_ms": float(np.percentile(soak_lat, 99)),
-            }
+            soak = {"requests": done, "clients": args.soak_clients, "seconds": time.perf_counter() - t0,
+                    "rss_before_mib": rss_before, "rss_after_mib": samples[-1][1], "rss_samples": samples,
+                    "statuses": soak_statuses, "p50_ms": float(np.percentile(soak_lat, 50)),
+                    "p99_ms": float(np.percentile(soak_lat, 99))}
             print(f"soak {done} requests: RSS {rss_before:.1f} -> {samples[-1][1]:.1f} MiB, statuses {soak_statuses}")
     load_after = os.getloadavg()
-
     command = command_line("bench.depth_service_bench", argv)
     report = render(results, soak, command, shape, len(frames), server_settings, rss_start, load_before, load_after,
                     args.media)
@@ -225,48 +214,34 @@ def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_f
            server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple,
            media: str = "png") -> str:
     lines = [
-        "# Depth service benchmark",
-        "",
-        f"Command: `{command}`",
-        "",
+        "# Depth service benchmark", "", f"Command: `{command}`", "",
         f"Machine: {describe()}. 1-min load average {load_before[0]:.2f} before the run "
         f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
-        "and the numbers are pessimistic); the client runs on the same 2 cores as the server.",
-        "",
+        "and the numbers are pessimistic); the client runs on the same 2 cores as the server.", "",
         f"Input: {n_frames} real KITTI frames ({shape[1]}x{shape[0]} gray) sent as {MEDIA_WORDS[media]}, "
         "POST /v1/disparity, "
         f"keep-alive connections, one thread per client. Server: `metricslam depth-service` with "
         f"{', '.join(f'DEPTH_{k.upper()}={v}' for k, v in server_settings.items() if k != 'model')} "
-        f"(other settings default), serving model `{server_settings.get('model')}`.",
-        "",
+        f"(other settings default), serving model `{server_settings.get('model')}`.", "",
         "| clients | form | requests | req/s | p50 ms | p90 ms | p99 ms | server CPU ms/req | client CPU ms/req | statuses |",
-        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
-    ]
+        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     cpu_ms = float(np.mean([r.server_cpu_s / r.requests * 1e3 for r in results])) if results else float("nan")
     for r in results:
         lines.append(f"| {r.clients} | {r.form} | {r.requests} | {r.rps:.1f} | {r.pct(50):.1f} | "
                      f"{r.pct(90):.1f} | {r.pct(99):.1f} | {r.server_cpu_s / r.requests * 1e3:.1f} | "
                      f"{r.client_cpu_s / r.requests * 1e3:.1f} | {r.statuses} |")
     if results:
-        lines += [
-            "",
-            f"Server CPU per request is the contention-robust number: {cpu_ms:.1f} ms on average, so a "
-            f"server with all {os.cpu_count()} cores to itself could not exceed about "
-            f"{os.cpu_count() * 1000 / cpu_ms:.0f} req/s here (an upper bound derived from CPU time, "
-            "not a measurement; CPU time itself is inflated by the sharing).",
-        ]
+        lines += ["", f"Server CPU per request is the contention-robust number: {cpu_ms:.1f} ms on average, so a "
+                  f"server with all {os.cpu_count()} cores to itself could not exceed about "
+                  f"{os.cpu_count() * 1000 / cpu_ms:.0f} req/s here (an upper bound derived from CPU time, "
+                  "not a measurement; CPU time itself is inflated by the sharing)."]
     if soak:
-        lines += [
-            "",
-            f"## Soak: {soak['requests']} requests, {soak['clients']} clients, JSON and npy alternating "
-            f"per {soak['requests'] // 10}",
-            "",
-            f"Server RSS {soak['rss_before_mib']:.1f} MiB before -> {soak['rss_after_mib']:.1f} MiB after "
-            f"({soak['seconds']:.0f} s, p50 {soak['p50_ms']:.1f} ms, p99 {soak['p99_ms']:.1f} ms, statuses "
-            f"{soak['statuses']}). RSS after warm-up, before the load levels: {rss_start:.1f} MiB.",
-            "",
-            "RSS every 10 %: " + ", ".join(f"{n}: {m:.1f}" for n, m in soak["rss_samples"]) + " (requests: MiB)",
-        ]
+        lines += ["", f"## Soak: {soak['requests']} requests, {soak['clients']} clients, JSON and npy alternating "
+                  f"per {soak['requests'] // 10}", "",
+                  f"Server RSS {soak['rss_before_mib']:.1f} MiB before -> {soak['rss_after_mib']:.1f} MiB after "
+                  f"({soak['seconds']:.0f} s, p50 {soak['p50_ms']:.1f} ms, p99 {soak['p99_ms']:.1f} ms, statuses "
+                  f"{soak['statuses']}). RSS after warm-up, before the load levels: {rss_start:.1f} MiB.", "",
+                  "RSS every 10 %: " + ", ".join(f"{n}: {m:.1f}" for n, m in soak["rss_samples"]) + " (requests: MiB)"]
     return "\n".join(lines) + "\n"
 
 

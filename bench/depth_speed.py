@@ -49,7 +49,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=100)
     p.add_argument("--out", help="write OUT.md and OUT.json")
     args = p.parse_args(argv)
-
     rng = np.random.default_rng(0)
     image = rng.integers(0, 256, (370, 1226), dtype=np.uint8)
     # KITTI odometry 06's camera (a contract-version-2 model needs all of it; version 1 reads fx only)

@@ -95,17 +95,15 @@ def run_setting(seq_dir: str, T_world_cam_gt: np.ndarray, sources: tuple[str, ..
     if ground:
         h = np.array([k["height_m"] for k in per_kf if k["accepted"]], dtype=float)
         h_all = np.array([k["height_m"] for k in per_kf if k["height_m"] is not None], dtype=float)
+        health = stats["backend"].get("scale_health", {})
         out["ground"] = {
             "keyframes_with_factor_pct": _pct(sum(g.accepted for g in ground) / max(len(ground), 1)),
             "height_median_abs_err_pct": _pct(np.median(np.abs(h / h_mount_m - 1))) if h.size else None,
             "height_median_m": round(float(np.median(h)), 3) if h.size else None,
             "height_median_abs_err_pct_all_estimates": _pct(np.median(np.abs(h_all / h_mount_m - 1))) if h_all.size else None,
             "rejected": stats["backend"].get("ground_rejected_reasons", {}),
-        }
-        health = stats["backend"].get("scale_health", {})
-        out["ground"]["health_warnings_issued"] = health.get("warnings_issued")
-        out["ground"]["health_warning_at_end"] = health.get("warning")
-        out["ground"]["health_disagreement_log_median"] = health.get("disagreement_log_median")
+            "health_warnings_issued": health.get("warnings_issued"), "health_warning_at_end": health.get("warning"),
+            "health_disagreement_log_median": health.get("disagreement_log_median")}
         out["per_keyframe"] = per_kf
     for name in ("learned_over_true", "ground_over_true"):
         vals = [k[name] for k in per_kf if k[name] is not None]
@@ -215,7 +213,6 @@ def plot(result: dict, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, help="KITTI-layout folder (repeat)")
     p.add_argument("--poses", action="append", required=True, help="its KITTI pose file (repeat, same order)")

@@ -87,6 +87,7 @@ from bench.slam_landmarks import scale_landmark_depths
 
 #: range bins of the triangulated depth (m), lo <= z < hi (the last one includes 60 m)
 RANGE_BINS_M = ((2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0))
+BIN_LABELS = tuple(f"{lo:g}-{hi:g}" for lo, hi in RANGE_BINS_M)
 #: the bins :func:`summary` takes the worst of (the near bin is left out: few scale landmarks)
 SUMMARY_BINS = ("5-10", "10-20", "20-40", "40-60")
 #: a bin needs this many corners to count in :func:`summary`
@@ -94,13 +95,6 @@ SUMMARY_MIN_CORNERS = 20
 
 #: SGBM oracle maps (1/m on the network grid) by (sequence folder, frame, grid, disparities)
 _ORACLE_CACHE: dict[tuple, np.ndarray] = {}
-
-
-def bin_label(lo: float, hi: float) -> str:
-    return f"{lo:g}-{hi:g}"
-
-
-BIN_LABELS = tuple(bin_label(lo, hi) for lo, hi in RANGE_BINS_M)
 
 
 def oracle_inv_depth(seq, index: int, grid_hw: tuple[int, int], num_disparities: int = 192,
@@ -341,7 +335,6 @@ def markdown(result: dict, command: str, machine: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, metavar="SEQ_DIR", help="KITTI-layout folder (repeat)")
     p.add_argument("--gt", action="append", required=True, metavar="POSES.txt",

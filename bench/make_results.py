@@ -28,17 +28,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from bench.results_common import (
-    BEGIN,
-    BINS,
-    COMMANDS_SHORTENED,
-    END,
-    RESULTS,
-    ROOT,
-    _load,
-    _src,
-    note_text,
-)
+from bench.results_common import BEGIN, BINS, COMMANDS_SHORTENED, END, RESULTS, ROOT, _load, _src, note_text
 from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
 from bench.results_pages import latency_block, live_vs_offline_block, own_rig_block, soak_block
 
@@ -109,8 +99,7 @@ def selection_table(data: dict) -> str:
         lines.append(f"| {r['label']} | {r['score']:.3f} | " + " | ".join(cells)
                      + f" | ×{r['lidar']['median_ratio']:.3f} |")
     w = data.get("winner")
-    lines.append("")
-    lines.append(f"Winner by the pre-registered rule: **{w['label'] if w else 'none'}**.")
+    lines += ["", f"Winner by the pre-registered rule: **{w['label'] if w else 'none'}**."]
     if data.get("slam"):
         per = data["slam"]
         names = list(next(iter(per.values())))
@@ -178,12 +167,10 @@ def build() -> tuple[str, str]:
     """(README block, docs/results.md)."""
     corners, lidar = _load("landmark_depth.json"), _load("depth_accuracy_0013.json")
     slam_file = "accuracy_shipped.json" if (RESULTS / "accuracy_shipped.json").is_file() else "accuracy_v3.json"
-    slam, sel = _load(slam_file), _load("depth_v3_selection_slam.json")
-    dspeed = _load("depth_speed_int8.json")
+    slam, sel, dspeed = _load(slam_file), _load("depth_v3_selection_slam.json"), _load("depth_speed_int8.json")
     speeds = {n: d for n in ("speed_0013.json", "speed.json") if (d := _load(n))}
     final_corners, final_slam = _load("landmark_depth_v3_final_06.json"), _load("accuracy_v3_final_06.json")
-    ft = _load("depth_v3ft_selection.json")
-    bound = _load("scale_upper_bound_0013.json")
+    ft, bound = _load("depth_v3ft_selection.json"), _load("scale_upper_bound_0013.json")
     consumed = _load("scale_measurements.json")
     parts = []
     if slam:

@@ -16,15 +16,13 @@ import queue
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+from bench.accuracy import METRICSLAM as CLI
 from metricslam.trajectory.io import read_kitti_poses
-
-CLI = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 def _lines(proc: subprocess.Popen) -> queue.Queue:

@@ -37,18 +37,14 @@ from pathlib import Path
 
 import cv2
 
+from bench.accuracy import METRICSLAM, _shown
 from bench.landmark_depth import BIN_LABELS
 from bench.landmark_depth import evaluate as landmark_evaluate
 from bench.machine import command_line, publish
 
-METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 #: what ``metricslam eval`` reports that the table shows (units in docs/evaluation.md)
 EVAL_KEYS = ("scale_error_pct", "scale_ratio", "ate_rmse_m", "ate_rmse_sim3_m", "t_rel_pct",
              "path_length_m", "n_frames")
-
-
-def _shown(cmd: list[str]) -> str:
-    return "metricslam " + " ".join(cmd[len(METRICSLAM):])
 
 
 def run_and_score(name: str, seq: str, model: str, calib: str | None, workdir: Path) -> dict:
@@ -90,8 +86,7 @@ def evaluate(seq: str, models: list[tuple[str, str]], calib: str | None, workdir
         row = {"name": name, "model": path, **run_and_score(name, seq, path, calib, workdir)}
         corners = landmark_evaluate([(seq, gt)], path, name, oracle=False)
         res = next(iter(corners["sequences"].values()))
-        row["model_id"] = corners["model"]["model_id"]
-        row["weights_precision"] = corners["model"]["weights_precision"]
+        row["model_id"], row["weights_precision"] = corners["model"]["model_id"], corners["model"]["weights_precision"]
         row["corners"] = {"pairs": res["pairs"], "n": res["corners"], "network": res["network"],
                           "depth_0": res["depth_0"], "eval_s": res["eval_s"]}
         err = (row.get("eval") or {}).get("scale_error_pct")
@@ -151,7 +146,6 @@ def _named(text: str) -> tuple[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", required=True, help="held-aside KITTI-layout drive with poses/00.txt")
     p.add_argument("--model", type=_named, action="append", required=True, metavar="NAME=PATH.onnx",

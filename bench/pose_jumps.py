@@ -29,10 +29,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from bench.accuracy import METRICSLAM
 from bench.machine import command_line, publish
 from metricslam.trajectory.io import read_kitti_poses
-
-METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 def steps_m(T_world_cam: np.ndarray) -> np.ndarray:
@@ -61,9 +60,8 @@ def run_sequence(name: str, seq: str, gt: str, workdir: Path, horizon_s: float |
                  min_true_step_m: float, check_unchanged: bool) -> dict:
     out, live, cont, stats = (workdir / f"{name}_{leaf}" for leaf in ("est.txt", "live.txt", "cont.txt", "stats.json"))
     cmd = [*METRICSLAM, "run", seq, "--deterministic", "--no-progress", "--out", str(out), "--json", str(stats),
-           "--live-out", str(live), "--continuous-out", str(cont)]
-    if horizon_s is not None:
-        cmd += ["--continuous-horizon", str(horizon_s)]
+           "--live-out", str(live), "--continuous-out", str(cont),
+           *([] if horizon_s is None else ["--continuous-horizon", str(horizon_s)])]
     subprocess.run(cmd, check=True)
     T_true, T_live, T_cont = read_kitti_poses(gt), read_kitti_poses(live), read_kitti_poses(cont)
     n = min(len(T_true), len(T_live))

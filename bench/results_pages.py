@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import statistics
-
 from pathlib import Path
 
 from bench.results_common import BINS, ROOT, _load, _src, short_command
@@ -124,5 +123,4 @@ def latency_block() -> str:
             f"{c['poses']}/{c['frames']} poses, p99 {c['p99_ms']:.0f} ms, {c['queue_drops']} drops" for c in two)
             + " (two full SLAMs and the depth service need more than two cores).")
     return "\n".join([" ".join(lines), "", f"Source: `bench/results/zenoh_loop1500_10hz.json`, command: "
-                      f"`{short_command(command)}`; "
-                      f"machine: {machine}"]) + "\n"
+                      f"`{short_command(command)}`; machine: {machine}"]) + "\n"

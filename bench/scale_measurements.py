@@ -192,7 +192,6 @@ def markdown(result: dict, command: str, machine: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", action="append", required=True, help="KITTI-layout stereo folder (repeat)")
     p.add_argument("--model", default=None, help="ONNX depth model (default: the shipped one)")

@@ -44,13 +44,10 @@ from metricslam_slam.tools.client import query_health
 from metricslam_slam.tools.soak import growth_mib_per_1000_frames, soak
 from metricslam_slam.zenoh_config import open_client
 
-CONFIGS = {
-    "defaults": {},
-    "small bounds": {"SLAM_MAX_SESSION_KEYFRAMES": "100", "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "30"},
-    "glibc arenas": {"SLAM_MALLOC_ARENAS": "0"},
-    "500-keyframe sessions": {"SLAM_MAX_SESSION_KEYFRAMES": "500"},
-    "no heap trim": {"SLAM_HEAP_TRIM_PERIOD_S": "0"},
-}
+CONFIGS = {"defaults": {}, "small bounds": {"SLAM_MAX_SESSION_KEYFRAMES": "100",
+                                            "METRICSLAM_GRAPH__LOOP__MAX_DATABASE_KEYFRAMES": "30"},
+           "glibc arenas": {"SLAM_MALLOC_ARENAS": "0"}, "500-keyframe sessions": {"SLAM_MAX_SESSION_KEYFRAMES": "500"},
+           "no heap trim": {"SLAM_HEAP_TRIM_PERIOD_S": "0"}}
 
 
 @contextlib.contextmanager

@@ -33,33 +33,23 @@ from bench.machine import command_line, describe, write_results
 
 MODES = {"metric": [], "no-scale": ["--no-scale"], "vo-only": ["--vo-only"]}
 #: (key in ms_per_frame / ms_per_call, label)
-VO_STAGES = (
-    ("frontend", "frontend: KLT tracking + frame handling"),
-    ("pose", "pose estimation"),
-    ("keyframe", "keyframe creation"),
-    ("ba", "sliding-window BA"),
-    ("ba_wait", "wait for BA"),
-    ("marginalization", "marginalization (Schur)"),
-    ("backend_handoff", "hand-off to global graph"),
-    ("total", "total VO per frame"),
-)
-BACKEND_STAGES = (
-    ("depth_ms_mean", "depth inference per request (ms)"),
-    ("solve_ms_mean", "global Sim(3) solve per update, mean (ms)"),
-    ("solve_ms_max", "global Sim(3) solve per update, max (ms)"),
-    ("loop_ms_mean", "loop-closure check per keyframe, mean (ms)"),
-    ("ground_ms_mean", "ground-plane fit per keyframe, mean (ms; scale source ground)"),
-    ("ground_cpu_ms_mean", "ground-plane fit per keyframe, thread CPU (ms)"),
-)
+VO_STAGES = (("frontend", "frontend: KLT tracking + frame handling"), ("pose", "pose estimation"),
+             ("keyframe", "keyframe creation"), ("ba", "sliding-window BA"), ("ba_wait", "wait for BA"),
+             ("marginalization", "marginalization (Schur)"), ("backend_handoff", "hand-off to global graph"),
+             ("total", "total VO per frame"))
+BACKEND_STAGES = (("depth_ms_mean", "depth inference per request (ms)"),
+                  ("solve_ms_mean", "global Sim(3) solve per update, mean (ms)"),
+                  ("solve_ms_max", "global Sim(3) solve per update, max (ms)"),
+                  ("loop_ms_mean", "loop-closure check per keyframe, mean (ms)"),
+                  ("ground_ms_mean", "ground-plane fit per keyframe, mean (ms; scale source ground)"),
+                  ("ground_cpu_ms_mean", "ground-plane fit per keyframe, thread CPU (ms)"))
 
 
 def run_mode(seq: str, mode: str, workdir: Path, max_frames: int | None) -> dict:
     """Run one mode as a child; returns stats plus wall, CPU seconds and peak RSS."""
     stats_path = workdir / f"{mode}_stats.json"
-    cmd = METRICSLAM + ["run", seq, "--out", str(workdir / f"{mode}.txt"), "--json",
-                        str(stats_path), "--no-progress"] + MODES[mode]
-    if max_frames:
-        cmd += ["--max-frames", str(max_frames)]
+    cmd = (METRICSLAM + ["run", seq, "--out", str(workdir / f"{mode}.txt"), "--json", str(stats_path), "--no-progress"]
+           + MODES[mode] + (["--max-frames", str(max_frames)] if max_frames else []))
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -88,8 +78,7 @@ def render_markdown(report: dict) -> str:
              f"Command: ``{report['command']}``  ", f"Machine: {report['machine']}  ",
              f"Code: {report['code']}  ", f"Date: {report['date_utc']}  ", f"Sequence: `{report['seq']}`", "",
              "## Whole run", "", "| | " + hdr[2:], sep]
-    n = [r["stats"].get("frames") for r in rows]
-    lines.append("| frames | " + " | ".join(str(x) for x in n) + " |")
+    lines.append("| frames | " + " | ".join(str(r["stats"].get("frames")) for r in rows) + " |")
     lines.append("| keyframes | " + " | ".join(str(r["stats"].get("keyframes")) for r in rows) + " |")
     lines.append("| wall s (incl. image loading) | " + " | ".join(_f(r["wall_s"]) for r in rows) + " |")
     lines.append("| frames/s, wall | " + " | ".join(_f(r["stats"].get("fps")) for r in rows) + " |")
@@ -136,14 +125,13 @@ def main(argv: list[str] | None = None) -> int:
         print(mode, {k: v for k, v in r.items() if k != "stats"}, flush=True)
         report["runs"].append(r)
     report["machine"] = describe()
-    report["notes"].append(
+    report["notes"] += [
         "Load average (1/5/15 min) before: " + "/".join(f"{x:.1f}" for x in load_before)
         + "; after: see Machine. Wall-clock numbers depend on what else ran on the 2 shared "
-        "cores; CPU s per frame is the steadier measure.")
-    report["notes"].append(
+        "cores; CPU s per frame is the steadier measure.",
         "ms per frame = stage time summed over the run / frames; ms per call = per invocation "
         "(BA and marginalization run once per keyframe). The back end (depth + global solve) "
-        "runs in its own thread, so its time overlaps the VO's.")
+        "runs in its own thread, so its time overlaps the VO's."]
     out = Path(args.out)
     write_results(out, report, render_markdown(report))
     print(f"wrote {out.with_suffix('.md')}")

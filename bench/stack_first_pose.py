@@ -31,9 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.accuracy import METRICSLAM as CLI
 from bench.machine import command_line, describe, write_results
-
-CLI = [sys.executable, "-m", "metricslam_cli.main"]
 
 
 def _evaluate(gt: np.ndarray, est: np.ndarray, name: str) -> dict:
@@ -123,8 +122,7 @@ def live_run(seq_dir: Path, gt: np.ndarray, work: Path, initial_scale: bool, rat
            "first_provisional_frame": states.index("provisional") if "provisional" in states else None,
            "first_metric_frame": states.index("metric") if "metric" in states else None}
     if poses.returncode == 0:
-        T_rec = read_kitti_poses(est)
-        out["recorded"] = _evaluate(gt, T_rec, "recorded (poses default)")
+        out["recorded"] = _evaluate(gt, read_kitti_poses(est), "recorded (poses default)")
     held = trajectory.frame_index
     if len(held) >= 3 and held.max() < n:
         out["optimized"] = _evaluate(gt[held], trajectory.T_world_cam, "optimized …/trajectory")
@@ -175,7 +173,6 @@ def offline_as_processed(seq_dir: Path, gt: np.ndarray, initial_scale: bool) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", type=Path, required=True, help="KITTI sequence folder")
     p.add_argument("--gt", type=Path, required=True, help="its KITTI ground-truth pose file")

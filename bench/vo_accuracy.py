@@ -53,20 +53,15 @@ def run_sequence(path: Path, preset: str | None, background: bool, max_frames: i
     ev = evaluate_poses(seq.T_world_cam_gt[:n], est, name=path.name).result
     st = pipe.stats()
     return {
-        "sequence": str(path), "name": path.name, "preset": preset, "frames": n,
-        "background_ba": background,
-        "path_length_m": ev.path_length_m,
-        "ate_sim3_m": ev.ate_rmse_sim3_m,
+        "sequence": str(path), "name": path.name, "preset": preset, "frames": n, "background_ba": background,
+        "path_length_m": ev.path_length_m, "ate_sim3_m": ev.ate_rmse_sim3_m,
         "ate_sim3_pct_of_distance": 100.0 * ev.ate_rmse_sim3_m / ev.path_length_m,
         "r_rel_deg_per_100m": ev.r_rel_deg_per_100m, "t_rel_pct_unscaled": ev.t_rel_pct,
-        "t_rel_lengths_m": ev.t_rel_lengths_m, "scale_ratio": ev.scale_ratio,
-        "rpe_rot_rmse_deg": ev.rpe_rot_rmse_deg,
+        "t_rel_lengths_m": ev.t_rel_lengths_m, "scale_ratio": ev.scale_ratio, "rpe_rot_rmse_deg": ev.rpe_rot_rmse_deg,
         "fps_process": n / process_s, "fps_including_flush": n / total_s,
-        "cpu_ms_per_frame": 1e3 * cpu_s / n, "fps_cpu_bound": n / cpu_s,
-        "decode_ms_per_frame": 1e3 * decode_s / n,
+        "cpu_ms_per_frame": 1e3 * cpu_s / n, "fps_cpu_bound": n / cpu_s, "decode_ms_per_frame": 1e3 * decode_s / n,
         "keyframes": st["keyframes"], "tracking_losses": st["tracking_losses"],
-        "ms_per_frame": st["ms_per_frame"], "ms_per_call": st["ms_per_call"],
-    }
+        "ms_per_frame": st["ms_per_frame"], "ms_per_call": st["ms_per_call"]}
 
 
 def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> str:
@@ -80,15 +75,13 @@ def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> 
            "| sequence | BA | frames | path m | KFs | losses | ATE Sim3 m | ATE % dist | r_rel deg/100m | "
            "fps (wall) | CPU ms/frame | frontend ms | pose ms | keyframe ms | BA ms/solve | "
            "marg ms/KF | decode ms |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-           "| --- |"]
+           "|" + " --- |" * 17]
     for r in rows:
         pf, pc = r["ms_per_frame"], r["ms_per_call"]
         out.append(
             f"| {r['name']} | {'worker' if r['background_ba'] else 'inline'} | {r['frames']} | {r['path_length_m']:.1f} | {r['keyframes']} | "
             f"{r['tracking_losses']} | {r['ate_sim3_m']:.3f} | {r['ate_sim3_pct_of_distance']:.2f} | "
-            f"{(r['r_rel_deg_per_100m'] or float('nan')):.3f} | {r['fps_process']:.1f} | "
-            f"{r['cpu_ms_per_frame']:.1f} | "
+            f"{(r['r_rel_deg_per_100m'] or float('nan')):.3f} | {r['fps_process']:.1f} | {r['cpu_ms_per_frame']:.1f} | "
             f"{pf.get('frontend', 0):.1f} | {pf.get('pose', 0):.1f} | {pf.get('keyframe', 0):.1f} | "
             f"{pc.get('ba', 0):.1f} | {pc.get('marginalization', 0):.1f} | {r['decode_ms_per_frame']:.1f} |")
     out += ["", "Stage columns: frontend/pose/keyframe are wall ms per frame (keyframe work "

@@ -109,8 +109,7 @@ def _fmt(x, f="{:.1f}"):
 
 def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_frames: int, shape) -> None:
     lines = [
-        "# SLAM service over Zenoh: latency, sustained rate, two cameras",
-        "",
+        "# SLAM service over Zenoh: latency, sustained rate, two cameras", "",
         f"Command: `{command_line('bench.zenoh_latency')}`  ",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
@@ -120,9 +119,7 @@ def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_
         "process through a zenoh router process to the SLAM service process (all loopback TCP).",
         "Latency = `put` of the frame -> arrival of its pose at the publisher process (same clock).",
         "A rate 'sustained' = every frame got a pose and the service's drop-oldest queue "
-        "(8 frames) dropped none. The sweep stops at the first rate that drops.",
-        "",
-    ]
+        "(8 frames) dropped none. The sweep stops at the first rate that drops.", ""]
     for res in results:
         title = ("Real SLAM pipeline (VO + global graph + HTTP depth service)" if res["kind"] == "pipeline"
                  else "Transport only (`--session identity`: no SLAM work)")
