@@ -46,22 +46,24 @@ KITTI06 = Path("../shared/data/kitti_odometry/sequences/06")
 KITTI06_POSES = Path("../shared/data/kitti_odometry/poses/06.txt")
 
 
-def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None) -> Path:
-    """Frames ``start .. stop-1`` of a KITTI-layout folder as a new folder, renumbered from 0
-    (``poses/00.txt`` cut from ``poses`` or from the source's own)."""
+def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None, skip: range = range(0)) -> Path:
+    """Frames ``start .. stop-1`` but ``skip`` of a KITTI-layout folder as a new folder,
+    renumbered from 0 (``poses/00.txt`` cut from ``poses`` or from the source's own)."""
     dst.mkdir(parents=True, exist_ok=True)
+    frames = [i for i in range(start, stop) if i not in skip]
     shutil.copy(src / "calib.txt", dst / "calib.txt")
     for sub in ("image_0", "image_1", "depth_0"):
         if (src / sub).is_dir():
             (dst / sub).mkdir(exist_ok=True)
-            for j, i in enumerate(range(start, stop)):
+            for j, i in enumerate(frames):
                 shutil.copy(src / sub / f"{i:06d}.png", dst / sub / f"{j:06d}.png")
-    times = (src / "times.txt").read_text().split()[start:stop]
-    (dst / "times.txt").write_text("".join(f"{t}\n" for t in times))
+    times = (src / "times.txt").read_text().split()
+    (dst / "times.txt").write_text("".join(f"{times[i]}\n" for i in frames))
     poses = poses or src / "poses" / "00.txt"
     if poses.is_file():
         (dst / "poses").mkdir(exist_ok=True)
-        (dst / "poses" / "00.txt").write_text("".join(f"{ln}\n" for ln in poses.read_text().splitlines()[start:stop]))
+        lines = poses.read_text().splitlines()
+        (dst / "poses" / "00.txt").write_text("".join(f"{lines[i]}\n" for i in frames))
     return dst
 
 

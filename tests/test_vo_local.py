@@ -13,6 +13,7 @@ from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
 from metricslam.errors import ConfigError
 from metricslam.geometry import se3, sim3
+from metricslam.geometry.align import align_trajectory
 from metricslam.slam.pipeline import SlamPipeline
 from metricslam.slam.types import TrackingState
 from metricslam.slam.vo.config import VOConfig
@@ -198,3 +199,65 @@ def test_rendered_synthetic_drive_is_recovered() -> None:
                                   @ (T[0, :3, :3].T @ T[i, :3, :3]), np.zeros(3)))[:3]
              for i in range(n)]
     assert np.degrees(np.max(np.linalg.norm(R_err, axis=1))) < 1.0
+
+
+@pytest.mark.slow
+def test_a_new_segment_keeps_the_scale_of_the_lost_one(kitti06) -> None:
+    """After a tracking loss the re-initialization's baseline is the distance covered per frame
+    when tracking was lost times the frames between its two views: the new segment keeps the
+    lost one's units, which the global graph's warps have made metres by then, so its loose
+    link between the segments starts near the right scale. The motion model restarts at rest
+    at the loss; reading the speed from it afterwards gave a baseline of 1 unit, whatever the
+    units were (here the back end's warp made them 4 times finer: ×0.25 off)."""
+    vo = LocalVO(VOConfig.preset("kitti", ba_in_background=False), kitti06.camera)
+    order = list(range(0, 14)) + list(range(40, 51))  # the jump loses tracking
+    warp_scale = 4.0
+    poses = {}
+    for k, i in enumerate(order):
+        if k == 14:  # as the back end's metric correction would, before the loss
+            vo.apply_similarity(sim3.from_rts(np.eye(3), np.zeros(3), warp_scale))
+        f = kitti06[i]
+        est = vo.process(Frame(index=k, t_ns=k * 100_000_000, image=f.image, camera=f.camera))
+        if est.state is TrackingState.TRACKING:
+            poses[k] = (est.segment_id, est.T_world_cam[:3, 3].copy())
+    vo.close()
+    truth = kitti06.T_world_cam_gt[order][:, :3, 3]
+
+    def units_per_metre(segment):
+        ks = sorted(k for k, (s, _) in poses.items() if s == segment)
+        steps = [(a, b) for a, b in zip(ks, ks[1:]) if b == a + 1]
+        return (sum(np.linalg.norm(poses[b][1] - poses[a][1]) for a, b in steps)
+                / sum(np.linalg.norm(truth[b] - truth[a]) for a, b in steps))
+
+    assert {s for s, _ in poses.values()} == {0, 1}
+    ratio = units_per_metre(1) / (warp_scale * units_per_metre(0))
+    assert 0.7 < ratio < 1.4, ratio
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("coast_max_s", [2.0, 0.0])
+def test_a_new_segment_starts_where_the_camera_went_while_tracking_was_lost(kitti06, coast_max_s) -> None:
+    """Seven frames missing (0.7 s of driving, their times kept): the VO loses tracking, and the
+    new segment starts where the mean motion of the last tracked frames takes the camera in
+    that time (``coast_max_s``), not where tracking was lost, as if the car had stopped."""
+    vo = LocalVO(VOConfig.preset("kitti", ba_in_background=False, coast_max_s=coast_max_s), kitti06.camera)
+    order = list(range(0, 20)) + list(range(27, 51))
+    poses = {}
+    for i in order:  # times of the original frames: the gap is in the clock too
+        f = kitti06[i]
+        est = vo.process(Frame(index=i, t_ns=i * 100_000_000, image=f.image, camera=f.camera))
+        if est.state is TrackingState.TRACKING:
+            poses[i] = (est.segment_id, est.T_world_cam.copy())
+    vo.close()
+    gt = kitti06.T_world_cam_gt
+    seg0 = sorted(i for i, (s, _) in poses.items() if s == 0)
+    first1 = min(i for i, (s, _) in poses.items() if s == 1)
+    # segment 0 in metres: the similarity that best maps its positions onto the truth
+    S, _ = align_trajectory(np.array([poses[i][1] for i in seg0]), gt[seg0], with_scale=True)
+    start_m = sim3.transform_points(S, poses[first1][1][:3, 3])
+    error_m = np.linalg.norm(start_m - gt[first1][:3, 3])
+    gap_m = np.linalg.norm(gt[first1][:3, 3] - gt[seg0[-1]][:3, 3])
+    if coast_max_s:
+        assert error_m < 0.3 * gap_m, (error_m, gap_m)
+    else:  # the old behaviour: about as far off as the camera went
+        assert error_m > 0.7 * gap_m, (error_m, gap_m)

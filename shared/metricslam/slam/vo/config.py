@@ -57,6 +57,11 @@ class VOConfig(BaseModel):
         0.5, ge=0, le=1, description="pose inliers below this share of the previous frame's: the "
         "motion prediction was off (e.g. a sudden turn), also try PnP-RANSAC and keep the better")
 
+    coast_max_s: float = Field(
+        2.0, ge=0, description="after a tracking loss the new segment starts where the mean motion "
+        "of the last tracked frames, kept up, would have taken the camera by then, for at most this "
+        "long (s; 0: where tracking was lost)")
+
     # --- window BA ---
     window_size: int = Field(10, ge=3, description="keyframes kept in the sliding window")
     ba_iterations: int = Field(3, ge=1, description="LM iterations per window solve (re-solved at every keyframe)")
