@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import defaultdict, deque
+from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +28,7 @@ from metricslam.geometry import se3, sim3, so3
 from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
 from metricslam.slam.vo.ba import orthonormalized
+from metricslam.slam.vo.coasting import MotionMemory
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.frontend import KLTFrontend
 from metricslam.slam.vo.initializer import InitResult, try_initialize
@@ -37,9 +38,6 @@ from metricslam.slam.vo.frame_check import limit_blas_threads, usable_gray
 from metricslam.slam.vo.window import BAWorker, Keyframe, SlidingWindow
 
 log = logging.getLogger(__name__)
-
-#: tracked steps whose mean motion a lost camera is taken to keep (:meth:`LocalVO._coasted`)
-COAST_STEPS = 5
 
 
 @dataclass(frozen=True)
@@ -95,10 +93,7 @@ class LocalVO:
         self._last_pose_inliers = 0  # pose inliers of the previous tracked frame
         self._anchors: list[Anchor] = []
         self._C_pending = np.eye(4)
-        self._t_tracked_ns: int | None = None  # time of the newest tracked frame
-        self._step_at_loss = 0.0  # distance per frame (VO units) when tracking was last lost
-        self._recent_steps: deque = deque(maxlen=COAST_STEPS)  # (twist (6,) per ns, t_ns) of tracked frames
-        self._coast: tuple[np.ndarray, int] | None = None  # (mean twist (6,) per ns, t_last_ns) at a loss
+        self._motion = MotionMemory(config.coast_max_s)  # where a lost camera went (:mod:`.coasting`)
         if config.blas_threads is not None:
             limit_blas_threads(config.blas_threads)
         self._worker = BAWorker(self.window) if config.ba_in_background else None
@@ -178,11 +173,7 @@ class LocalVO:
             self._T_last_cur[:3, 3] *= s
             if self._ref is not None:
                 self._ref.T_world_ref = warp(self._ref.T_world_ref)
-            self._step_at_loss *= s
-            if self._coast is not None:
-                self._coast = (self._coast[0] * np.r_[np.ones(3), np.full(3, s)], self._coast[1])
-            self._recent_steps = deque(((w * np.r_[np.ones(3), np.full(3, s)], t) for w, t in self._recent_steps),
-                                       maxlen=COAST_STEPS)
+            self._motion.warp(s)
             S = np.asarray(S_new_old, dtype=float)
             self._C_pending = orthonormalized(S @ self._C_pending @ np.linalg.inv(S))
 
@@ -203,14 +194,9 @@ class LocalVO:
                             is_keyframe=is_kf, segment_id=self._segment)
 
     def _lose(self, frame: Frame) -> PoseEstimate:
-        """Tracking loss: marginalize what is left, start a new segment where the camera went
-        meanwhile (:meth:`_coasted`) in the units of the lost one."""
+        """Tracking loss: marginalize the window; a new segment starts where the camera went (:mod:`.coasting`)."""
         self.counters["tracking_losses"] += 1
-        self._step_at_loss = float(np.linalg.norm(self._T_last_cur[:3, 3]))  # the motion model resets below
-        self._coast = (None if not self._recent_steps else
-                       (np.mean([w for w, _ in self._recent_steps], axis=0), self._recent_steps[-1][1]))
-        self._recent_steps.clear()
-        self._t_tracked_ns = None
+        self._motion.lost(self._T_last_cur)  # before the motion model resets below
         try:
             self.flush()
         except Exception:  # noqa: BLE001
@@ -244,20 +230,7 @@ class LocalVO:
         self.frontend.detect(gray)
         tr = self.frontend.tracks
         self._ref = _InitRef(frame.index, int(frame.t_ns), gray, tr.ids, tr.uv_px,
-                             self._coasted(int(frame.t_ns)), [])
-
-    def _coasted(self, t_ns: int) -> np.ndarray:
-        """Where the camera is at ``t_ns`` after a loss: the last tracked pose moved on by the
-        mean motion (twist per ns) of the last ``COAST_STEPS`` tracked frames for the time since
-        the last of them, at most ``coast_max_s``; the last pose itself at the start, or when
-        that time is not positive or too long (constant velocity means nothing then)."""
-        if self._coast is None:
-            return self._T_world_last.copy()
-        twist_per_ns, t_last = self._coast
-        dt = t_ns - t_last
-        if not 0 < dt <= self.config.coast_max_s * 1e9:
-            return self._T_world_last.copy()
-        return self._T_world_last @ se3.exp(dt * twist_per_ns)
+                             self._motion.pose_at(self._T_world_last, int(frame.t_ns)), [])
 
     def _process_init(self, frame: Frame, gray: np.ndarray) -> PoseEstimate:
         t0 = time.perf_counter()
@@ -285,7 +258,7 @@ class LocalVO:
         ref = self._ref
         # keep the scale of the previous segment when there was one: baseline = speed x frames,
         # the speed when tracking was lost (the motion model restarts at rest then)
-        speed = self._step_at_loss
+        speed = self._motion.step_at_loss
         n_frames = max(frame.index - ref.frame_index, 1)
         baseline = speed * n_frames if speed > 0 else 1.0
         T_ref_cur = res.T_ref_cur.copy()
@@ -309,7 +282,7 @@ class LocalVO:
             self._last_pose_inliers = 0  # a new segment: nothing to compare the next frame with
             self._T_last_cur = np.eye(4)
             self._T_last_cur[:3, 3] = T_ref_cur[:3, 3] / n_frames
-            self._t_tracked_ns = int(frame.t_ns)
+            self._motion.started(int(frame.t_ns))
             # frames between the two views: interpolate (they had no map to track against)
             self._anchors.append(Anchor(ref.frame_index, ref.frame_index, np.eye(4)))
             span = max(frame.t_ns - ref.t_ns, 1)
@@ -374,10 +347,7 @@ class LocalVO:
             self._T_world_last = orthonormalized(C @ self._T_world_last)
             T_world_cam = orthonormalized(C @ T_world_cam)
         self._T_last_cur = se3.inverse(self._T_world_last) @ T_world_cam
-        if self._t_tracked_ns is not None and frame.t_ns > self._t_tracked_ns:
-            self._recent_steps.append((se3.log(orthonormalized(self._T_last_cur)) / (frame.t_ns - self._t_tracked_ns),
-                                       int(frame.t_ns)))
-        self._t_tracked_ns = int(frame.t_ns)
+        self._motion.tracked(self._T_last_cur, int(frame.t_ns))
         self._T_world_last = T_world_cam
         self._frames_since_kf += 1
         is_kf = self._need_keyframe()
