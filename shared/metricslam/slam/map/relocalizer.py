@@ -45,7 +45,7 @@ from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.initial_scale import ask_depth
 from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
-from metricslam.slam.loop.verification import LandmarkFeatures, landmark_features, verify
+from metricslam.slam.loop.verification import LandmarkFeatures, _match, landmark_features, verify
 from metricslam.slam.loop.vocabulary import BinaryVocabulary
 from metricslam.slam.map.format import SavedMap
 
@@ -58,6 +58,10 @@ GATE_M, GATE_RAD, GATE_LOG_SCALE = 2.0, 0.1, 0.1
 #: keyframe's network depth (±20-40 % from one view), so only a factor of two is refused; where
 #: the matches place the session's keyframes (``GATE_M``) still has to agree
 GATE_LOG_SCALE_PREMETRIC = float(np.log(2.0))
+#: a verified match is refined on the corners of the loop-database rows this close to its map
+#: keyframe's, on the correspondences within each of these reprojection gates in turn (px), when
+#: at least this many stay (:meth:`Relocalizer._refined`)
+LOCAL_MAP_ROWS, LOCAL_MAP_GATES_PX, LOCAL_MAP_MIN_POINTS = 2, (8.0, 4.0, 3.0), 12
 #: verified matches (of different session keyframes) that must agree before the session counts as
 #: relocalized: one match alone was off by ~9 m in position on the rendered revisit (a far view of
 #: the map's first keyframe), two agreed with the final estimate within ~2 m
@@ -233,9 +237,42 @@ class Relocalizer:
                 res = verify(lm, LandmarkFeatures(f.uv_px[ex], f.points[ex], f.descriptors[ex]),
                              kf.camera, cfg, self._rng)
             if res is not None:
+                S = res.S_old_new if new is None else self._refined(new, int(i), res.S_old_new, kf.camera)
                 return RelocMatch(int(self._ids[i]), int(kf.frame_index), int(frame_now),
-                                  res.S_old_new, res.n_inliers, float(scores[i]))
+                                  S, res.n_inliers, float(scores[i]))
         return None
+
+    def _refined(self, new: corner_mod.CornerFeatures, i: int, S_mapkf_kf: np.ndarray,
+                 camera: PinholeCamera) -> np.ndarray:
+        """``S_mapkf_kf`` (4, 4) of a match verified against loop-database row ``i``, its pose
+        refined on the corners of rows ``i ± LOCAL_MAP_ROWS`` brought into row ``i``'s keyframe
+        frame (several map keyframes' network depths average one view's depth error out, as
+        ORB-SLAM tracks its local map after relocalizing); unchanged when fewer than
+        ``LOCAL_MAP_MIN_POINTS`` correspondences stay within the last gate
+        (``docs/history/rule_reloc_local_map_session18.md``)."""
+        T_kf_map = np.linalg.inv(self._T_map_kf[int(self._ids[i])])
+        uv, pts = [np.zeros((0, 2))], [np.zeros((0, 3))]
+        for j in range(max(0, i - LOCAL_MAP_ROWS), min(len(self._ids), i + LOCAL_MAP_ROWS + 1)):
+            f = self._features[j]
+            ok = np.isfinite(f.points).all(axis=1)
+            pairs = _match(new.descriptors, f.descriptors[ok], self.config.hamming_ratio)
+            T = T_kf_map @ self._T_map_kf[int(self._ids[j])]
+            uv.append(new.uv_px[pairs[:, 0]])
+            pts.append(f.points[ok][pairs[:, 1]] @ T[:3, :3].T + T[:3, 3])
+        uv, pts = np.vstack(uv), np.vstack(pts)
+        R, t, s = sim3.split(S_mapkf_kf)
+        rvec, tvec = cv2.Rodrigues(R.T)[0], (-R.T @ t).reshape(3, 1)  # the query camera's pose
+        for gate_px in LOCAL_MAP_GATES_PX:
+            q = pts @ cv2.Rodrigues(rvec)[0].T + tvec.ravel()
+            err = np.full(len(q), np.inf)
+            front = q[:, 2] > 0
+            err[front] = np.linalg.norm(camera.project(q[front]) - uv[front], axis=1)
+            keep = err < gate_px
+            if keep.sum() < LOCAL_MAP_MIN_POINTS:
+                return S_mapkf_kf
+            rvec, tvec = cv2.solvePnPRefineLM(pts[keep], uv[keep], camera.K, None, rvec, tvec)
+        R_kf_new = cv2.Rodrigues(rvec)[0].T
+        return sim3.from_rts(R_kf_new, -R_kf_new @ tvec.ravel(), s)
 
     def _corners(self, gray, kf, lm: LandmarkFeatures, inv_depth_map) -> corner_mod.CornerFeatures | None:
         """The keyframe's ORB corners with network depth plus its landmark features, 3-D in its
