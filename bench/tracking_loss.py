@@ -47,15 +47,12 @@ def sources(work: Path, data: Path) -> dict[str, Path]:
     return out
 
 
-def scenario(src: Path, dst: Path, a: int, b: int, coast: bool, kitti: bool) -> dict:
-    """One run of frames of ``src`` but ``a .. b-1``: ATE SE(3) (m) and tracking losses."""
-    n = len((src / "times.txt").read_text().split())
-    seq = cut(src, dst, 0, n, skip=range(a, b))
+def scenario(seq: Path, no_coast: Path | None, kitti: bool) -> dict:
+    """One run of ``seq`` (``no_coast``: that VO config file): ATE SE(3) (m), tracking losses."""
     flags = ("--preset", "kitti") if kitti else ()  # a cut folder is not recognized as a render
-    if not coast:
-        (dst.parent / "no_coast.yaml").write_text("vo:\n  coast_max_s: 0\n")
-        flags += ("--config", str(dst.parent / "no_coast.yaml"))
-    out = dst.parent / f"{dst.name}_{'coast' if coast else 'no_coast'}.txt"
+    if no_coast is not None:
+        flags += ("--config", str(no_coast))
+    out = seq.parent / f"{seq.name}_{'no_coast' if no_coast else 'coast'}.txt"
     _, st = run(seq, out, *flags)
     gt, est = read_kitti_poses(seq / "poses" / "00.txt"), read_kitti_poses(out)
     ok = [i for i in range(len(gt)) if i not in set(st["pose_invalid_frame_indices"])]
@@ -79,11 +76,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     args = ap.parse_args(argv)
     src = sources(args.work, args.data)
+    no_coast = args.work / "no_coast.yaml"
+    no_coast.write_text("vo:\n  coast_max_s: 0\n")
     rows = {}
     for name, (source, a, b, which) in SCENARIOS.items():
-        dst = args.work / name.replace(" ", "_")
-        rows[name] = {"set": which, **{k: scenario(src[source], dst, a, b, k == "coast", source in ("kitti06", "k13"))
-                                       for k in ("coast", "no_coast")}}
+        n = len((src[source] / "times.txt").read_text().split())
+        seq = cut(src[source], args.work / name.replace(" ", "_"), 0, n, skip=range(a, b))
+        kitti = source in ("kitti06", "k13")
+        rows[name] = {"set": which, "coast": scenario(seq, None, kitti), "no_coast": scenario(seq, no_coast, kitti)}
     publish(args.out, {"scenarios": rows}, command_line("bench.tracking_loss", argv), render)
     return 0
 

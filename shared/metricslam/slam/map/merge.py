@@ -33,7 +33,7 @@ from metricslam.errors import MapError
 from metricslam.geometry import sim3, so3
 from metricslam.slam.graph.gtsam_sim3 import from_gtsam, to_gtsam
 from metricslam.slam.map.format import SavedMap
-from metricslam.slam.map.relocalizer import Relocalizer, close
+from metricslam.slam.map.relocalizer import Relocalizer
 
 #: σ of the session's own relative poses [ω rad ×3, u units ×3, λ log-scale]
 ODOMETRY_SIGMAS = [0.005] * 3 + [0.05] * 3 + [0.01]
@@ -54,8 +54,8 @@ def merge_session(saved: SavedMap, session: SavedMap, relocalizer: Relocalizer, 
     kf = session.arrays["keyframes"]
     S_world_kf = [sim3.from_rts(T[:3, :3], T[:3, 3], s) for T, s in zip(kf["T_map_kf"], kf["scale_kf"])]
     index = {int(f): i for i, f in enumerate(kf["frame_index"])}
-    cross = [(m, index[m.kf_frame]) for m, c in relocalizer.candidates(
-        {int(f): S_world_kf[i] for f, i in index.items()}, metric_world) if close(S_map_world, c)]
+    cross = [(m, index[m.kf_frame]) for m in relocalizer.agreeing(
+        S_map_world, {int(f): S_world_kf[i] for f, i in index.items()}, metric_world)]
     if not cross:
         raise MapError("--map with --save-map: no verified match agrees with the relocalization; "
                        "nothing joins the session to the map")

@@ -293,8 +293,7 @@ class Relocalizer:
         return corner_mod.CornerFeatures(np.vstack([uv, lm.uv_px]), np.vstack([desc, lm.descriptors]),
                                          np.vstack([pts, lm.points]))
 
-    def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray], gate_m: float = GATE_M,
-                    gate_rad: float = GATE_RAD, gate_log_scale: float = GATE_LOG_SCALE,
+    def S_map_world(self, S_world_kf_by_frame: dict[int, np.ndarray],
                     metric_world: bool = False) -> tuple[np.ndarray | None, int, int]:
         """``(S_map_world (4, 4) or None, matches used, matches rejected)`` from every match
         whose session keyframe is in ``S_world_kf_by_frame`` (the back end's
@@ -310,16 +309,22 @@ class Relocalizer:
         cands = [(S, S_world_kf[:3, 3]) for _, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)]
         if not cands:
             return None, 0, len(self.matches)
-        gates = (gate_m, gate_rad, gate_log_scale if metric_world else max(gate_log_scale, GATE_LOG_SCALE_PREMETRIC))
 
         def agree(a, b) -> bool:  # where both place the two matched keyframes, and how
-            return close(a[0], b[0], *gates, at_world=np.stack([a[1], b[1]]))
+            return agree_at(a[0], b[0], np.stack([a[1], b[1]]), metric_world)
 
         support = [sum(agree(a, b) for b in cands) for a in cands]
         medoid = cands[int(np.argmax(support))]
         kept = [c[0] for c in cands if agree(medoid, c)]
         mean = np.mean([sim3.local(medoid[0], c) for c in kept], axis=0)
         return sim3.retract(medoid[0], mean), len(kept), len(self.matches) - len(kept)
+
+    def agreeing(self, S_map_world: np.ndarray, S_world_kf_by_frame: dict[int, np.ndarray],
+                 metric_world: bool) -> list[RelocMatch]:
+        """The matches whose keyframe is in ``S_world_kf_by_frame`` and that agree with
+        ``S_map_world`` (4, 4) where they place their keyframe (:func:`agree_at`)."""
+        return [m for m, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)
+                if agree_at(S_map_world, S, S_world_kf[None, :3, 3], metric_world)]
 
     def measured_S_mapkf_kf(self, m: RelocMatch, S_world_kf: np.ndarray, metric_world: bool) -> np.ndarray:
         """The match's ``S_mapkf_kf`` (4, 4), its scale the session graph's when ``metric_world``
@@ -360,6 +365,12 @@ def close(a: np.ndarray, b: np.ndarray, gate_m: float = GATE_M, gate_rad: float 
     gap_m = np.linalg.norm(sim3.transform_points(a, p) - sim3.transform_points(b, p), axis=1).max()
     return (gap_m < gate_m and np.linalg.norm(so3.log(Ra.T @ Rb)) < gate_rad
             and abs(np.log(sa / sb)) < gate_log_scale)
+
+
+def agree_at(a: np.ndarray, b: np.ndarray, p_world: np.ndarray, metric_world: bool) -> bool:
+    """Two ``S_map_world`` agree: :func:`close` at the session keyframe positions ``p_world``
+    (N, 3), with the scale gate of a metric world or, before learned scale, a factor of two."""
+    return close(a, b, GATE_M, GATE_RAD, GATE_LOG_SCALE if metric_world else GATE_LOG_SCALE_PREMETRIC, at_world=p_world)
 
 
 def to_map_frame(S_map_world: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
