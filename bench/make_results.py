@@ -181,7 +181,9 @@ def build() -> tuple[str, str]:
     if corners:
         parts += [f"**Depth network where SLAM samples it** (median z_net / z_tri at corners tracked "
                   f"over 3 frames and triangulated with the ground-truth motion; shipped model "
-                  f"`{corners['model']['model_id']}`):", "", corner_table(corners), "",
+                  f"`{corners['model']['model_id']}`"
+                  + (f"; {corners['name']}" if corners.get("name", "shipped default") != "shipped default" else "")
+                  + "):", "", corner_table(corners), "",
                   _src("landmark_depth.json", corners), ""]
     if lidar:
         seen = "2011_09_26_drive_0013" in str(lidar.get("training_data", ""))

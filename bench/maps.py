@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from bench.machine import command_line, publish
+from metricslam.depth import RENDERED_MODEL_PATH
 from metricslam.geometry import sim3
 from metricslam.geometry.align import align_trajectory
 from metricslam.slam.map.format import SavedMap, load_map, save_map
@@ -65,6 +66,10 @@ def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None, 
         lines = poses.read_text().splitlines()
         (dst / "poses" / "00.txt").write_text("".join(f"{lines[i]}\n" for i in frames))
     return dst
+
+
+#: rendered worlds run with the depth model for rendered worlds (the default is real streets only)
+RENDERED = ("--model", str(RENDERED_MODEL_PATH))
 
 
 def run(seq: Path, out: Path, *flags: str) -> tuple[int, dict]:
@@ -124,8 +129,8 @@ def rendered_revisit(work: Path) -> dict:
     if not (src / "poses" / "00.txt").is_file():
         generate_sequence(src, 300, seed=3, size=(620, 188), path="loop")
     s1, s2 = cut(src, work / "r1", 0, 150), cut(src, work / "r2", 190, 300)
-    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"))
-    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"))
+    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"), *RENDERED)
+    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"), *RENDERED)
     m = st2["map"]
     gt = read_kitti_poses(src / "poses" / "00.txt")
     entry = next(j for j in range(110) if np.min(np.linalg.norm(gt[:150, :3, 3] - gt[190 + j, :3, 3], axis=1)) < 10)
@@ -148,8 +153,8 @@ def rendered_revisit(work: Path) -> dict:
     other = work / "other150"
     if not (other / "poses" / "00.txt").is_file():
         generate_sequence(other, 150, seed=5, size=(620, 188), path="loop")
-    run(other, work / "o1.txt", "--save-map", str(work / "o_map"))
-    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"))
+    run(other, work / "o1.txt", "--save-map", str(work / "o_map"), *RENDERED)
+    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"), *RENDERED)
     out["foreign_map"] = {"exit_code": code_o, "relocalized": st_o["map"]["relocalized"],
                           "matches": st_o["map"]["relocalization_matches"]}
     return out

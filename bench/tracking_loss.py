@@ -16,7 +16,7 @@ import argparse
 from pathlib import Path
 
 from bench.machine import command_line, publish
-from bench.maps import _ate_se3_m, cut, run
+from bench.maps import RENDERED, _ate_se3_m, cut, run
 from metricslam.synth.scene import generate_sequence
 from metricslam.trajectory.io import read_kitti_poses
 
@@ -49,7 +49,8 @@ def sources(work: Path, data: Path) -> dict[str, Path]:
 
 def scenario(seq: Path, no_coast: Path | None, kitti: bool) -> dict:
     """One run of ``seq`` (``no_coast``: that VO config file): ATE SE(3) (m), tracking losses."""
-    flags = ("--preset", "kitti") if kitti else ()  # a cut folder is not recognized as a render
+    # a cut folder is not recognized as a render; renders run with the model for rendered worlds
+    flags = ("--preset", "kitti") if kitti else RENDERED
     if no_coast is not None:
         flags += ("--config", str(no_coast))
     out = seq.parent / f"{seq.name}_{'no_coast' if no_coast else 'coast'}.txt"

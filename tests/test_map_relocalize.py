@@ -27,12 +27,15 @@ import json
 import numpy as np
 import pytest
 from bench.maps import cut as cut_sequence
+from metricslam.depth import RENDERED_MODEL_PATH
 from metricslam.geometry import sim3
 from metricslam.geometry.align import align_trajectory
 from metricslam.trajectory.io import read_kitti_poses
 from metricslam_cli.main import main
 
 pytestmark = pytest.mark.slow
+#: the depth model for rendered worlds: the shipped default is trained on real streets only
+RENDERED = ("--model", str(RENDERED_MODEL_PATH))
 START2 = 190  # session 2's first frame in the render: ~35 m past session 1's last, outside the map
 N2 = 300 - START2
 
@@ -44,9 +47,9 @@ def sessions(synth_sequence, tmp_path_factory):
     s1 = cut_sequence(src, root / "s1", 0, 150)
     s2 = cut_sequence(src, root / "s2", START2, 300)
     assert main(["run", str(s1), "--out", str(root / "s1.txt"), "--json", str(root / "s1.json"),
-                 "--deterministic", "--no-progress", "--save-map", str(root / "map")]) == 0
+                 "--deterministic", "--no-progress", "--save-map", str(root / "map"), *RENDERED]) == 0
     assert main(["run", str(s2), "--out", str(root / "s2.txt"), "--json", str(root / "s2.json"),
-                 "--deterministic", "--no-progress", "--map", str(root / "map")]) == 0
+                 "--deterministic", "--no-progress", "--map", str(root / "map"), *RENDERED]) == 0
     return src, root
 
 
@@ -91,9 +94,9 @@ def test_a_map_of_another_world_does_not_relocalize(sessions, synth_sequence, ca
     src, root = sessions
     other = synth_sequence(150, seed=5, path="loop")
     assert main(["run", str(other), "--out", str(root / "o.txt"), "--deterministic", "--no-progress",
-                 "--save-map", str(root / "other_map")]) == 0
+                 "--save-map", str(root / "other_map"), *RENDERED]) == 0
     code = main(["run", str(root / "s2"), "--out", str(root / "s2o.txt"), "--json", str(root / "s2o.json"),
-                 "--deterministic", "--no-progress", "--map", str(root / "other_map")])
+                 "--deterministic", "--no-progress", "--map", str(root / "other_map"), *RENDERED])
     assert code == 1
     assert "never relocalized" in capsys.readouterr().err
     stats = json.loads((root / "s2o.json").read_text())["map"]

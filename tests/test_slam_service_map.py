@@ -42,6 +42,7 @@ import numpy as np
 import pytest
 from bench.maps import cut as cut_sequence
 from metricslam.datasets import open_sequence
+from metricslam.depth import RENDERED_MODEL_PATH
 from metricslam.geometry.align import align_trajectory
 from metricslam.slam.config_file import load_system_config
 from metricslam.slam.graph.config import OFFLINE_DEPTH_QUEUE_SIZE
@@ -69,7 +70,8 @@ def scene(synth_sequence, tmp_path_factory):
     s1 = cut_sequence(src, root / "s1", 0, 150)
     cut_sequence(src, root / "s2", START2, 300)
     assert main(["run", str(s1), "--out", str(root / "s1.txt"), "--json", str(root / "s1.json"),
-                 "--deterministic", "--no-progress", "--save-map", str(root / "map")]) == 0
+                 "--deterministic", "--no-progress", "--save-map", str(root / "map"),
+                 "--model", str(RENDERED_MODEL_PATH)]) == 0
     return src, root
 
 
@@ -83,7 +85,8 @@ def stack():
     # frames are replayed as fast as zenoh takes them and nothing may be dropped on a loaded machine:
     # the frame queue holds all of them and the depth queue is the offline one
     config = load_system_config(profile=LIVE_PROFILE, overrides={
-        "vo": {"preset": "synth"}, "queues": {"frames": 400}, "graph": {"depth_queue_size": OFFLINE_DEPTH_QUEUE_SIZE}})
+        "vo": {"preset": "synth"}, "queues": {"frames": 400}, "graph": {"depth_queue_size": OFFLINE_DEPTH_QUEUE_SIZE},
+        "depth": {"model_path": str(RENDERED_MODEL_PATH)}})
 
     def start(**overrides) -> SlamService:
         for old in services:

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from metricslam.datasets import open_sequence
+from metricslam.depth import RENDERED_MODEL_PATH
 from metricslam.trajectory.io import read_kitti_poses
 from metricslam_slam.tools.client import PoseRecorder, query_trajectory
 from metricslam_slam.tools.replay import replay_sequence
@@ -79,7 +80,9 @@ def _stop(proc: subprocess.Popen) -> None:
 
 @pytest.mark.slow
 def test_up_replay_poses_with_depth_outage(synth_seq: Path, tmp_path: Path) -> None:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # the depth service reads the rendered world with the model for rendered worlds (the shipped
+    # default is trained on real streets only); DEPTH_MODEL_PATH is how an operator names it
+    env = dict(os.environ, PYTHONUNBUFFERED="1", DEPTH_MODEL_PATH=str(RENDERED_MODEL_PATH))
     up = subprocess.Popen(CLI + ["up", "--zenoh-endpoint", ENDPOINT, "--depth-port", str(DEPTH_PORT),
                                  "--log-dir", str(tmp_path / "logs"), "--restart-delay", "3"],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)

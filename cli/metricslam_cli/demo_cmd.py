@@ -25,6 +25,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--seed", type=int, default=0, help="seed of the generated world and path")
     p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="replay rate")
     p.add_argument("--no-scale", action="store_true", help="baseline without learned scale")
+    p.add_argument("--model", default=None, metavar="PATH",
+                   help="depth model (default: the shipped model for rendered worlds, "
+                   "depth_l3_rendered_int8.onnx; the default for real cameras, depth_l3_int8.onnx, "
+                   "is trained on real streets only)")
     p.set_defaults(func=run)
     return p
 
@@ -42,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frames must be >= 30 for a meaningful loop, got {args.frames}")
     out_dir = Path(args.out_dir) if args.out_dir else Path(tempfile.gettempdir()) / "metricslam-demo"
     result = run_demo(out_dir, frames=args.frames, seed=args.seed, rate_hz=args.rate,
-                      use_scale=not args.no_scale)
+                      use_scale=not args.no_scale, depth_model=args.model)
     print()
     print(format_table(result))
     print(f"\nplot:    {result.plot_png}\nmetrics: {result.metrics_json}")

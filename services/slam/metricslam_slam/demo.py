@@ -39,8 +39,12 @@ def _step(i: int, text: str) -> None:
 
 
 def run_demo(out_dir: Path, frames: int = 200, seed: int = 0, rate_hz: float = 10.0,
-             use_scale: bool = True, size: tuple[int, int] = (1241, 376), keep_seq: bool = True) -> DemoResult:
+             use_scale: bool = True, size: tuple[int, int] = (1241, 376), keep_seq: bool = True,
+             depth_model: str | None = None) -> DemoResult:
+    """Run the demo; ``depth_model`` None: the model for rendered worlds (``RENDERED_MODEL_PATH``:
+    the shipped default is trained on real streets only and is not meant for rendered ones)."""
     from metricslam.datasets import open_sequence
+    from metricslam.depth import RENDERED_MODEL_PATH, DepthModel
     from metricslam.evaluation.evaluator import evaluate_poses
     from metricslam.evaluation.plots import save_plot
     from metricslam.synth import generate_sequence
@@ -67,7 +71,11 @@ def run_demo(out_dir: Path, frames: int = 200, seed: int = 0, rate_hz: float = 1
     _step(2, f"starting the stack: zenoh {endpoint}, depth http://127.0.0.1:{depth_port} "
              f"(logs in {out_dir / 'logs'})")
     (out_dir / "logs").mkdir(exist_ok=True)
-    stack = Stack(endpoint, depth_port=depth_port, use_scale=use_scale, log_dir=str(out_dir / "logs"))
+    model_path = str(depth_model or RENDERED_MODEL_PATH)
+    if use_scale:
+        print(f"      depth model: {DepthModel.load(model_path).contract.model_id} ({model_path})", flush=True)
+    stack = Stack(endpoint, depth_port=depth_port, use_scale=use_scale, log_dir=str(out_dir / "logs"),
+                  depth_model=model_path)
     stack.start(on_ready=lambda c: print(f"      {c.name} ready (pid {c.process.pid})", flush=True))
     try:
         session = open_client(endpoint)

@@ -10,7 +10,13 @@ from metricslam.depth.contract import (
     ModelContract,
     Normalization,
 )
-from metricslam.depth.model import DEFAULT_MODEL_PATH, FLOAT32_MODEL_PATH, DepthModel, InvDepthMap
+from metricslam.depth.model import (
+    DEFAULT_MODEL_PATH,
+    FLOAT32_MODEL_PATH,
+    RENDERED_MODEL_PATH,
+    DepthModel,
+    InvDepthMap,
+)
 from metricslam.depth.sample import sample_map
 
 __all__ = [
@@ -23,6 +29,7 @@ __all__ = [
     "OUTPUT_DEFINITION",
     "DEFAULT_MODEL_PATH",
     "FLOAT32_MODEL_PATH",
+    "RENDERED_MODEL_PATH",
     "DepthModel",
     "InvDepthMap",
     "ModelContract",

@@ -3,7 +3,9 @@
 Two copies of the same network ship as package data: :data:`DEFAULT_MODEL_PATH`
 (``depth_l3_int8.onnx``, static int8, ~2x faster on CPU, the default everywhere a model is not
 named) and :data:`FLOAT32_MODEL_PATH` (``depth_l3.onnx``, the float32 export it was quantized
-from; see docs/depth_quantization.md).
+from; see docs/depth_quantization.md). The default is trained on real streets only;
+:data:`RENDERED_MODEL_PATH` is a model trained with rendered streets too, for the rendered worlds
+of ``metricslam synth`` (the demo, tests of the stack on rendered worlds).
 
 Example::
 
@@ -54,6 +56,10 @@ FLOAT32_MODEL_PATH = _MODELS_DIR / "depth_l3.onnx"
 #: the default model: the static int8 copy of :data:`FLOAT32_MODEL_PATH` (same contract and
 #: ``model_id``, ``weights_precision = "int8-static"``; docs/depth_quantization.md).
 DEFAULT_MODEL_PATH = _MODELS_DIR / "depth_l3_int8.onnx"
+#: for rendered worlds (``metricslam synth``): int8, trained on KITTI 01/03 and six rendered
+#: streets (the default until session 18, ``pyramid-l3-kitti0103fix-synthexact-no06``). The
+#: real-streets default reads rendered worlds' scale far worse (``bench/results/accuracy_rendered_models.md``).
+RENDERED_MODEL_PATH = _MODELS_DIR / "depth_l3_rendered_int8.onnx"
 
 
 @dataclass(frozen=True)

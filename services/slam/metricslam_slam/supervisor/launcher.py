@@ -129,6 +129,8 @@ class Stack:
         probe_period_s: time between probe rounds (each probe waits at most this, capped at 2 s).
         scale_sources / mount_height_m: the SLAM service's ``--scale-sources`` (comma-separated)
             and ``--mount-height`` (m); None: its config's (docs/ground_scale.md).
+        depth_model: the depth service's ``--model`` (ONNX path); None: its ``DEPTH_MODEL_PATH``
+            or the shipped default.
     """
 
     def __init__(self, zenoh_endpoint: str, depth_port: int | None = DEFAULT_DEPTH_PORT,
@@ -139,7 +141,8 @@ class Stack:
                  config_path: str | None = None, restart_delay_max_s: float = 30.0,
                  stable_after_s: float = 30.0, hang_timeout_s: float = 20.0,
                  probe_period_s: float = 2.0, state_dir: str | None = None,
-                 scale_sources: str | None = None, mount_height_m: float | None = None) -> None:
+                 scale_sources: str | None = None, mount_height_m: float | None = None,
+                 depth_model: str | None = None) -> None:
         check_endpoint(zenoh_endpoint)
         if hang_timeout_s < 0 or probe_period_s <= 0:
             raise ServiceError(f"--hang-timeout must be >= 0 and --probe-period > 0 s, got "
@@ -172,7 +175,8 @@ class Stack:
                                probe=self._zenoh_probe.router)]
         if self.depth_url is not None and use_scale:
             self.children.append(Child(
-                "depth-service", cli + ["depth-service", "--host", depth_host, "--port", str(depth_port)],
+                "depth-service", cli + ["depth-service", "--host", depth_host, "--port", str(depth_port)]
+                + (["--model", str(depth_model)] if depth_model else []),
                 lambda: _http_ready(self.depth_url), self.depth_url,
                 binds=[(depth_host, int(depth_port), socket.SOCK_STREAM, "--depth-port <PORT>")],
                 probe=lambda: http_healthz(self.depth_url, probe_timeout_s)))
