@@ -70,8 +70,9 @@ def test_identity_without_corrections_bit_for_bit():
 
 @pytest.mark.parametrize("s", [1.15, 0.8, 3.0])
 def test_continuity_across_a_scale_jump(s):
-    """Each step is at most the true step plus the jump's share of one frame (dt / horizon);
-    for KITTI-sized scale changes (15-25 %) that is within 2x the true per-frame motion."""
+    """Each step is at most the true step plus the jump's share of one frame (dt / horizon), and a
+    jump too large for the horizon is blended no faster than half the camera's speed: within 2x
+    the true per-frame motion whatever the jump (x3 moves the camera 60 m)."""
     rng = np.random.default_rng(1)
     truth = drive(120, seed=1)
     k_warp = 40
@@ -86,8 +87,20 @@ def test_continuity_across_a_scale_jump(s):
     jump = np.linalg.norm(raw[k_warp, :3, 3] - apply_sim3_rigid(S, truth[k_warp - 1])[:3, 3])
     bound = true_max + 1.05 * (np.linalg.norm(raw[k_warp, :3, 3] - raw[k_warp - 1, :3, 3]) + jump) * 0.1 / 2.0
     assert steps_m(cont).max() <= bound
-    if s < 2.0:  # x3 moves the camera 60 m: blended over 2 s that is > 1 m per frame
-        assert steps_m(cont).max() <= 2.0 * true_max
+    assert steps_m(cont).max() <= 2.0 * true_max
+    # and it is fully blended in within max_horizon_s (10 s) of the warp
+    assert out[k_warp].blend_until_t_ns <= live[k_warp - 1].t_ns + 10 * 10**9
+
+
+def test_a_large_correction_takes_longer_than_the_horizon_a_small_one_does_not():
+    rng = np.random.default_rng(4)
+    truth = drive(200, seed=4)  # 1 m per frame at 10 Hz: 10 m/s
+    for s, slower in ((1.05, False), (3.0, True)):
+        S = random_warp(rng, s)
+        live = [est(k, T if k < 60 else apply_sim3_rigid(S, T)) for k, T in enumerate(truth)]
+        _, out = run(live, {60: S})
+        blend_s = (out[60].blend_until_t_ns - live[59].t_ns) / 1e9
+        assert (blend_s > 2.0 + 1e-9) is slower and blend_s <= 10.0 + 1e-9, (s, blend_s)
 
 
 def test_converges_to_the_live_pose_within_the_horizon():

@@ -20,8 +20,12 @@ gives, for every frame::
   the output converges to the live pose within ``horizon_s`` of the last correction, and it is
   *identical* to the live pose (bit for bit) when no correction ever happens (``D = I``).
 
-The correction's per-frame share is its size · ``dt / horizon_s``: a 5 m jump blended over 2 s
-at 10 Hz adds at most 0.25 m to one frame's step. Frames without a tracked pose of their own
+The correction's per-frame share is its size · ``dt / horizon``: a 5 m jump blended over 2 s
+at 10 Hz adds at most 0.25 m to one frame's step. A correction too large for that (the first
+metric scale can move a camera by tens of metres) is blended more slowly, no faster than
+``max_correction_share`` of the camera's own speed (at most ``max_horizon_s``), so the stream's
+steps stay within ``1 + max_correction_share`` times the odometry's
+(``docs/history/rule_continuous_rate_limit_session19.md``). Frames without a tracked pose of their own
 (initializing, lost, invalid) hold the odometry (zero twist); the correction keeps blending.
 
 Corrections are learned from the back end's typed events (:meth:`ContinuousOdometry.attach`:
@@ -59,13 +63,19 @@ class ContinuousOdometryConfig(BaseModel):
     """Options of :class:`ContinuousOdometry`.
 
     Attributes:
-        horizon_s: a correction is fully blended in this long after it landed (s).
+        horizon_s: a correction is fully blended in this long after it landed (s), at least.
+        max_correction_share: a large correction is blended no faster than this share of the
+            odometry's own speed at the frame it landed, so a step of the stream stays within
+            ``1 + share`` times the odometry's step; the blend then takes longer than ``horizon_s``.
+        max_horizon_s: the longest a blend may take (s); a camera standing still gets this.
         nominal_dt_s: frame period assumed when two frames' ``t_ns`` do not increase (s).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     horizon_s: float = Field(default=2.0, gt=0)
+    max_correction_share: float = Field(default=0.5, gt=0)
+    max_horizon_s: float = Field(default=10.0, gt=0)
     nominal_dt_s: float = Field(default=0.1, gt=0)
 
 
@@ -138,6 +148,7 @@ class ContinuousOdometry:
         self._T_last_live: np.ndarray | None = None  # latest tracked live pose, warped since
         self._last_t_ns: int | None = None
         self._last_segment: int | None = None
+        self._speed = 0.0                   # odometry speed at the latest tracked frame (units/s)
         self._pending = False               # a correction landed since the latest tracked pose
         self._outer: Any = None             # session whose T_world_origin maps inner warps
         self.corrections = 0
@@ -205,10 +216,12 @@ class ContinuousOdometry:
             elif self._pending:
                 T_rel = se3.inverse(self._T_last_live) @ T_live
                 self._T_odom_cam = _rigid(T_prev_odom @ T_rel)
+                self._speed = float(np.linalg.norm(T_rel[:3, 3])) / dt_s  # in the corrected units
                 self._reanchor(T_live @ se3.inverse(self._T_odom_cam), t_ns)
             else:
                 self._T_odom_cam = se3.inverse(self._D) @ T_live if self.reanchors else T_live
             twist = se3.log(_rigid(se3.inverse(T_prev_odom) @ self._T_odom_cam)) / dt_s
+            self._speed = float(np.linalg.norm(twist[3:]))
         if tracked:
             self._T_last_live = T_live
             self._last_segment = est.segment_id
@@ -229,8 +242,17 @@ class ContinuousOdometry:
         self._D = _rigid(D_new)
         self._B0 = self._T_world_odom
         self._t0_ns = self._last_t_ns if self._last_t_ns is not None else t_ns
-        self._blend_end_ns = self._t0_ns + int(round(self.config.horizon_s * 1e9))
+        self._blend_end_ns = self._t0_ns + int(round(self._horizon_s() * 1e9))
         self._xi_blend = se3.log(_rigid(se3.inverse(self._B0) @ self._D))
+
+    def _horizon_s(self) -> float:
+        """How long the new correction takes: ``horizon_s``, or longer for a correction that would
+        otherwise add more than ``max_correction_share`` of the camera's speed to a frame."""
+        cfg = self.config
+        E = se3.inverse(self._B0 @ self._T_odom_cam) @ (self._D @ self._T_odom_cam)
+        rate_m_s = cfg.max_correction_share * self._speed
+        needed_s = float(np.linalg.norm(E[:3, 3])) / rate_m_s if rate_m_s > 0 else cfg.max_horizon_s
+        return max(cfg.horizon_s, min(needed_s, cfg.max_horizon_s))
 
     def _blend(self, t_ns: int) -> np.ndarray:
         if not self.reanchors or t_ns >= self._blend_end_ns:
