@@ -151,8 +151,8 @@ def evaluate(seqs: list[str], poses: list[str], h_mount_m: float, tuned_on: str,
 def markdown(result: dict, command: str, machine: str) -> str:
     lines = ["# Ground-plane scale (issue #33)", "",
              f"Camera {result['mount_height_m']} m above the road. Estimator parameters chosen on rendered "
-             f"streets and `{result['tuned_on']}`; every other drive is held out. Other jobs (two "
-             "depth-network trainings) shared the 2-core CPU, so frames/s are pessimistic. The health "
+             f"streets and `{result['tuned_on']}`; every other drive is held out. Frames/s mean something "
+             "only on a quiet machine (the load average below says whether one was). The health "
              "warning's window was 5 keyframes in a first run of this bench (warnings on both drives, "
              "flapping); it is now 15, the network error's documented correlation length, with "
              "hysteresis — chosen from that documentation, but after seeing both drives. The height "

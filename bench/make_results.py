@@ -207,6 +207,10 @@ def build() -> tuple[str, str]:
                  "keyframes of the back end's robust scale estimate over the true one (it tracks the "
                  "trajectory's scale ratio above).", "", consumed_table(consumed), "",
                  _src("scale_measurements.json", consumed), ""]
+    for name, what in (("accuracy_rendered_default.json", "the shipped default (real streets only)"),
+                       ("accuracy_rendered_model.json", "the model for rendered worlds, as `metricslam demo` runs it")):
+        if rendered := _load(name):
+            page += [f"## The demo's rendered world with {what}", "", slam_table(rendered), "", _src(name, rendered), ""]
     if sel:
         page += ["## Depth v3 candidates (issue #16): the pre-registered rule and the SLAM check", "",
                  selection_table(sel), "", _src("depth_v3_selection_slam.json", sel),

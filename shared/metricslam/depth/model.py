@@ -58,7 +58,8 @@ FLOAT32_MODEL_PATH = _MODELS_DIR / "depth_l3.onnx"
 DEFAULT_MODEL_PATH = _MODELS_DIR / "depth_l3_int8.onnx"
 #: for rendered worlds (``metricslam synth``): int8, trained on KITTI 01/03 and six rendered
 #: streets (the default until session 18, ``pyramid-l3-kitti0103fix-synthexact-no06``). The
-#: real-streets default reads rendered worlds' scale far worse (``bench/results/accuracy_rendered_models.md``).
+#: real-streets default reads rendered worlds' scale far worse (the demo's world with each:
+#: ``bench/results/accuracy_rendered_default.md``, ``accuracy_rendered_model.md``).
 RENDERED_MODEL_PATH = _MODELS_DIR / "depth_l3_rendered_int8.onnx"
 
 
