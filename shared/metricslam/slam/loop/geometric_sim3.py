@@ -115,9 +115,15 @@ def measure_loop(R_old_new: np.ndarray, t_old_new_init: np.ndarray, uv_new: np.n
     idx = np.flatnonzero(has_old)
     t_no = -R_new_old @ np.asarray(t_old_new_init, float)
     gate = 4.0 * reprojection_px  # the guess is close: gate, refine, re-select from all, refine
-    for _ in range(3):
+    for k in range(3):
         _, _, e = refine_translation(R_new_old, t_no, p_old[idx], uv_new[idx], camera, iterations=0)
         sel = idx[e < gate]
+        # a guess off by tens of percent puts near corners beyond the first gate: widen it (x2,
+        # x4) before giving up; the refinements that follow tighten it to reprojection_px again
+        for wider in (2.0, 4.0):
+            if k > 0 or len(sel) >= min_translation_points:
+                break
+            sel = idx[e < wider * gate]
         if len(sel) < min_translation_points:
             return None
         t_no, _, _ = refine_translation(R_new_old, t_no, p_old[sel], uv_new[sel], camera)
