@@ -54,7 +54,7 @@ def own_rig_block() -> str:
 def live_vs_offline_block() -> str:
     """The generated block of docs/usage.md: the README stack recipe against the offline run,
     judged by the rule of ``docs/history/rule_live_vs_offline_session10.md``."""
-    rows = ["| drive | live stream (`poses`) | live optimized (`poses --trajectory`), per repeat | offline `run` "
+    rows = ["| drive | live stream (`poses`) | live optimized (`poses --trajectory --finish`), per repeat | offline `run` "
             "| offline `run --deterministic` | median \\|live − offline\\| | within 1 pp |",
             "| --- | --- | --- | --- | --- | --- | --- |"]
     sources = []

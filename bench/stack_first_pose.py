@@ -83,7 +83,7 @@ class _Up:
 def live_run(seq_dir: Path, gt: np.ndarray, work: Path, initial_scale: bool, rate_hz: float) -> dict:
     """One pass of the recipe; returns what the CLI recorded and what was published."""
     from metricslam_slam.supervisor.launcher import free_port
-    from metricslam_slam.tools.client import PoseRecorder, query_trajectory
+    from metricslam_slam.tools.client import PoseRecorder, finish_camera, query_trajectory
     from metricslam_slam.zenoh_config import open_client
 
     from metricslam.trajectory.io import read_kitti_poses
@@ -107,7 +107,7 @@ def live_run(seq_dir: Path, gt: np.ndarray, work: Path, initial_scale: bool, rat
         poses_out = poses.communicate(timeout=240)[0]
         watch.wait_frames(n, 30)
         watch.close()
-        time.sleep(2.0)  # the last keyframes' depth answers and solve
+        finish_camera(session, "cam0", "bench.stack_first_pose")  # as `poses --trajectory --finish`
         trajectory = query_trajectory(session, "cam0")
         session.close()
     finally:

@@ -46,11 +46,16 @@ N_FRAMES = 8  # of the replayed folder
 
 
 class MovingSession(IdentitySession):
-    """Moves 1 m along z per frame from its own origin."""
+    """Moves 1 m along z per frame from its own origin; ``final_x_m``: its close (the pipeline's
+    marginalized window and final solve) moves every pose that far along x."""
 
-    def __init__(self, delay_s: float = 0.0) -> None:
+    def __init__(self, delay_s: float = 0.0, final_x_m: float = 0.0) -> None:
         super().__init__()
-        self.delay_s = delay_s
+        self.delay_s, self.final_x_m = delay_s, final_x_m
+
+    def close(self) -> None:
+        for pose in self._poses:
+            pose.T_world_cam[0, 3] += self.final_x_m
 
     def process(self, frame):
         if self.delay_s:
@@ -70,10 +75,10 @@ def stack():
     client = open_client(endpoint)
     services: list[SlamService] = []
 
-    def start_service(delay_s: float = 0.0, **overrides) -> SlamService:
+    def start_service(delay_s: float = 0.0, final_x_m: float = 0.0, **overrides) -> SlamService:
         settings = SlamServiceSettings(**{"zenoh_endpoint": endpoint, "depth_url": None, "session_kind": "identity",
                                           "status_period_s": 0.1, **overrides})
-        svc = SlamService(settings, session_factory=lambda cid, cam: MovingSession(delay_s),
+        svc = SlamService(settings, session_factory=lambda cid, cam: MovingSession(delay_s, final_x_m),
                           config=SystemConfig(depth={"use_scale": False}, queues={"frames": 64})).start()
         services.append(svc)
         deadline = time.monotonic() + 5  # until this service (not one stopped before) answers
@@ -254,6 +259,34 @@ def test_the_tools_read_new_sessions_as_the_service_writes_them() -> None:
 
 
 # -- item 1: the documented poses + replay pair, twice ----------------------------------------
+def test_finish_closes_the_camera_and_poses_writes_its_final_trajectory(stack, tmp_path: Path, capsys) -> None:
+    """``poses --trajectory --finish`` (the ``…/_service/finish/<camera_id>`` queryable): the
+    answer is the closed session's trajectory (after its final solve), not the open one's."""
+    from metricslam_slam.tools.client import finish_camera
+
+    endpoint, client, start_service, _ = stack
+    svc = start_service(final_x_m=5.0)
+    recorder = PoseRecorder(client, "cam0")
+    _publish(client, range(4))
+    assert recorder.wait_frames(4, 10)
+    assert {T[0, 3] for T in query_trajectory(client, "cam0").T_world_cam} == {0.0}  # open: not final
+    est = tmp_path / "final.txt"
+    assert main(["poses", "--zenoh-endpoint", endpoint, "--out", str(est), "--timeout", "0.5",
+                 "--trajectory", "--finish", "--all"]) == 0
+    final = read_kitti_poses(est)
+    assert len(final) == 4 and {T[0, 3] for T in final} == {5.0} and final[3][2, 3] == 3.0
+    health = svc.health()
+    assert health["cameras"] == [] and health["closed_cameras"] == ["cam0"]
+    assert recorder.wait_for(lambda r: any(d.startswith("finish requested (metricslam poses")
+                                           for d in _details(r, "camera_closed")), 5), _details(recorder, "camera_closed")
+    assert finish_camera(client, "cam0")["finished"] is False  # nothing running any more
+    _publish(client, range(4, 6))  # frames that go on are continued from the final pose
+    assert recorder.wait_frames(6, 10) and recorder.poses[4].T_world_cam[2, 3] == 4.0
+    capsys.readouterr()
+    assert main(["poses", "--zenoh-endpoint", endpoint, "--out", str(est), "--finish"]) == 1
+    assert "--finish" in capsys.readouterr().err
+
+
 def test_the_documented_poses_and_replay_pair_twice(stack, folder: Path, tmp_path: Path, capsys) -> None:
     endpoint, _, start_service, _ = stack
     start_service()

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 
 from metricslam.endpoints import DEFAULT_ZENOH_ENDPOINT
+from metricslam.errors import ConfigError
 from metricslam_cli.extras import require
 
 #: --timeout with --frames
@@ -64,6 +65,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--trajectory", action="store_true",
                    help="write the optimized trajectory instead of live poses (asked at the end, once "
                         "three answers 0.5 s apart agree, at most 10 s)")
+    p.add_argument("--finish", action="store_true",
+                   help="with --trajectory: first close the camera in the service (its newest "
+                        "keyframes join the global graph, the final solve runs), then write its final "
+                        "trajectory, as `metricslam run` does at the end; its next frame continues it")
     p.add_argument("--mcap", metavar="OUT.mcap",
                    help="also write an MCAP recording for Foxglove (ros extra): poses, path updates, "
                         "keyframe images (if the service sends them), depth maps, landmarks "
@@ -74,11 +79,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     require("slam-service", command="poses")
+    if args.finish and not args.trajectory:
+        raise ConfigError("--finish closes the camera to write its final trajectory: it needs --trajectory")
 
     import time
 
     from metricslam_slam.tools.client import (
-        PoseRecorder, new_sessions, query_health, query_trajectory, service_restart, settled_trajectory,
+        PoseRecorder, finish_camera, new_sessions, query_health, query_trajectory, service_restart,
+        settled_trajectory,
     )
     from metricslam_slam.tools.recording import missing_error, missing_frames, unscaled_frames, write_mcap, write_poses
     from metricslam_slam.zenoh_config import open_client
@@ -96,7 +104,10 @@ def run(args: argparse.Namespace) -> int:
         statuses = recorder.statuses_so_far()
         restart = service_restart(health_before, query_health(session, timeout_s=2.0), statuses)
         trajectory = None
-        if args.trajectory:  # after the last pose its keyframe's depth and solve may still run
+        if args.trajectory and args.finish:  # closed: the answer is final, nothing left to settle
+            finish_camera(session, args.camera_id, "metricslam poses --trajectory --finish")
+            trajectory = query_trajectory(session, args.camera_id)
+        elif args.trajectory:  # after the last pose its keyframe's depth and solve may still run
             trajectory = settled_trajectory(lambda: query_trajectory(session, args.camera_id))
     finally:
         session.close()

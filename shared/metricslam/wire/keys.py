@@ -80,6 +80,16 @@ def reset_key(camera_id: str) -> str:
     return f"{RESET_KEY_PREFIX}/{check_camera_id(camera_id)}"
 
 
+#: the SLAM service's queryable ``metricslam/_service/finish/<camera_id>``: close the camera now
+#: (window marginalized, final solve), its final trajectory kept on ``…/trajectory`` (docs/usage.md)
+FINISH_KEY_PREFIX = f"{PREFIX}/_service/finish"
+
+
+def finish_key(camera_id: str) -> str:
+    """``metricslam/_service/finish/<camera_id>`` (:data:`FINISH_KEY_PREFIX`)."""
+    return f"{FINISH_KEY_PREFIX}/{check_camera_id(camera_id)}"
+
+
 #: the SLAM service's queryable ``metricslam/_service/map/save/<camera_id>``: save the camera's
 #: session map to the folder named by the query's payload (docs/maps.md)
 MAP_SAVE_KEY_PREFIX = f"{PREFIX}/_service/map/save"

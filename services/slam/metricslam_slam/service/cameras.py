@@ -236,6 +236,17 @@ class Cameras:
         self._expire(now)
         return len(idle)
 
+    def finish(self, camera_id: str, why: str) -> bool:
+        """Close the camera now, as :meth:`close_idle` does (its final trajectory is kept);
+        False when it has no running session."""
+        with self._lock:
+            worker = self._workers.pop(camera_id, None)
+            if worker is not None:
+                self._closing[camera_id] = threading.Event()
+        if worker is not None:
+            self._close(worker, why)
+        return worker is not None
+
     def close_all(self) -> None:
         """Stop taking cameras and close every one (service stop)."""
         with self._lock:

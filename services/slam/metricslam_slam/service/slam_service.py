@@ -34,11 +34,12 @@ from metricslam.slam.events import Solved
 from metricslam.slam.system_config import LIVE_PROFILE, SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
+from metricslam_slam.service.camera_commands import on_finish_query, on_reset_query
 from metricslam_slam.service.camera_worker import CameraWorker
 from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
 from metricslam_slam.service.memory import trim_heap
-from metricslam_slam.service.service_map import ServiceMap, camera_of_query
+from metricslam_slam.service.service_map import ServiceMap
 from metricslam_slam.service.sessions import SessionFactory, make_session_factory
 from metricslam_slam.service.settings import SlamServiceSettings, check_retired_environment
 from metricslam_slam.zenoh_config import ZenohAccess, open_client
@@ -138,7 +139,8 @@ class SlamService:
             s.declare_subscriber(self._frame_keys, self._on_frame),
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
-            s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", self._on_reset_query),
+            s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", lambda q: on_reset_query(self, q)),
+            s.declare_queryable(f"{keys.FINISH_KEY_PREFIX}/*", lambda q: on_finish_query(self, q)),
             s.declare_queryable(f"{keys.MAP_SAVE_KEY_PREFIX}/*",
                                 lambda q: self.map.on_save_query(q, self._cameras.get, self._serves)),
         ]
@@ -309,23 +311,6 @@ class SlamService:
             T_world_cam=np.array([p.T_world_cam for p in poses], dtype=np.float64).reshape(n, 4, 4),
             state_code=TrajectoryMessage.state_codes([p.state for p in poses]))
         query.reply(keys.key(camera_id, "trajectory"), encode(message))
-
-    def _on_reset_query(self, query: zenoh.Query) -> None:
-        """``metricslam/_service/reset/<camera_id>``: the camera's next frame starts a fresh
-        session. Answers JSON ``{"camera_id", "earlier_poses", "instance"}``; a service that does
-        not serve the camera (``frame_key_expr``) stays silent."""
-        camera_id = camera_of_query(query)
-        if camera_id is None:
-            return
-        if not self._serves(camera_id) or self._stopped.is_set():
-            return
-        given = query.payload.to_bytes().decode(errors="replace").strip() if query.payload is not None else ""
-        why = f"reset requested ({given[:200] or 'no reason given'})"
-        earlier = self._cameras.reset(camera_id, why)
-        log.warning("camera %s: %s; its next frame starts a new session (%d earlier poses not continued)",
-                    camera_id, why, earlier)
-        query.reply(keys.reset_key(camera_id), json.dumps(
-            {"camera_id": camera_id, "earlier_poses": earlier, "instance": self.instance}).encode())
 
     def _on_health_query(self, query: zenoh.Query) -> None:
         query.reply(keys.HEALTH_KEY, json.dumps(self.health()).encode())

@@ -241,12 +241,27 @@ def reset_camera(session: zenoh.Session, camera_id: str, why: str = "", timeout_
     Raises:
         ServiceError: no SLAM service serving the camera answered.
     """
+    return _camera_command(session, keys.reset_key(camera_id), f"reset camera {camera_id!r}", why, timeout_s)
+
+
+def finish_camera(session: zenoh.Session, camera_id: str, why: str = "", timeout_s: float = 60.0) -> dict:
+    """Ask the SLAM service to close ``camera_id`` now (its local window marginalized, the final
+    solve run: the final trajectory, as ``metricslam run`` writes it at the end), answered once
+    done: ``{"camera_id", "finished", "instance"}`` (``finished`` False: no running session).
+
+    Raises:
+        ServiceError: no SLAM service serving the camera answered.
+    """
+    return _camera_command(session, keys.finish_key(camera_id), f"finish camera {camera_id!r}", why, timeout_s)
+
+
+def _camera_command(session: zenoh.Session, key: str, what: str, why: str, timeout_s: float) -> dict:
     errors = []
-    for reply in session.get(keys.reset_key(camera_id), payload=why.encode(), timeout=timeout_s):
+    for reply in session.get(key, payload=why.encode(), timeout=timeout_s):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
         errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
-    raise ServiceError(f"could not reset camera {camera_id!r}: "
+    raise ServiceError(f"could not {what}: "
                        f"{'; '.join(errors) or 'no SLAM service serving it answered'}; is one running (`metricslam up`)?")
 
 
