@@ -34,7 +34,7 @@ from metricslam.slam.events import Solved
 from metricslam.slam.system_config import LIVE_PROFILE, SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
-from metricslam_slam.service.camera_commands import on_finish_query, on_reset_query
+from metricslam_slam.service.camera_commands import CameraCommands
 from metricslam_slam.service.camera_worker import CameraWorker
 from metricslam_slam.service.cameras import Cameras
 from metricslam_slam.service.map_publisher import MapPublisher
@@ -135,12 +135,13 @@ class SlamService:
         except zenoh.ZError as exc:
             raise ServiceError(f"frame_key_expr {self.settings.frame_key_expr!r} is not a zenoh key "
                                f"expression: {exc}") from None
+        commands = CameraCommands(self._cameras, self._serves, self._stopped.is_set, self.instance)
         self._entities = [
             s.declare_subscriber(self._frame_keys, self._on_frame),
             s.declare_queryable(keys.wildcard("trajectory"), self._on_trajectory_query),
             s.declare_queryable(keys.HEALTH_KEY, self._on_health_query),
-            s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", lambda q: on_reset_query(self, q)),
-            s.declare_queryable(f"{keys.FINISH_KEY_PREFIX}/*", lambda q: on_finish_query(self, q)),
+            s.declare_queryable(f"{keys.RESET_KEY_PREFIX}/*", commands.on_reset_query),
+            s.declare_queryable(f"{keys.FINISH_KEY_PREFIX}/*", commands.on_finish_query),
             s.declare_queryable(f"{keys.MAP_SAVE_KEY_PREFIX}/*",
                                 lambda q: self.map.on_save_query(q, self._cameras.get, self._serves)),
         ]
