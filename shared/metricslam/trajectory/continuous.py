@@ -250,8 +250,8 @@ class ContinuousOdometry:
         otherwise add more than ``max_correction_share`` of the camera's speed to a frame."""
         cfg = self.config
         E = se3.inverse(self._B0 @ self._T_odom_cam) @ (self._D @ self._T_odom_cam)
-        rate_m_s = cfg.max_correction_share * self._speed
-        needed_s = float(np.linalg.norm(E[:3, 3])) / rate_m_s if rate_m_s > 0 else cfg.max_horizon_s
+        rate_per_s = cfg.max_correction_share * self._speed
+        needed_s = float(np.linalg.norm(E[:3, 3])) / rate_per_s if rate_per_s > 0 else cfg.max_horizon_s
         return max(cfg.horizon_s, min(needed_s, cfg.max_horizon_s))
 
     def _blend(self, t_ns: int) -> np.ndarray:

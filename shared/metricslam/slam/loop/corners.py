@@ -30,7 +30,7 @@ from metricslam.camera import PinholeCamera
 from metricslam.geometry import sim3
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.loop.geometric_sim3 import measure_loop
-from metricslam.slam.loop.verification import VerifiedLoop, _match
+from metricslam.slam.loop.verification import VerifiedLoop, match_descriptors
 
 #: metric inverse depths outside this range (1/m) are not used (sky, hood, too near).
 INV_DEPTH_RANGE_PER_M = (1.0 / 60.0, 1.0 / 1.5)
@@ -201,7 +201,7 @@ def triangulated_points(uv_px: np.ndarray, desc: np.ndarray, prev_uv_px: np.ndar
         (N, 3) in k's camera frame, NaN where no match, bad reprojection or low parallax.
     """
     pts = np.full((len(uv_px), 3), np.nan)
-    pairs = _match(desc, prev_desc, hamming_ratio)
+    pairs = match_descriptors(desc, prev_desc, hamming_ratio)
     if len(pairs) < 8:
         return pts
     R, t = np.asarray(T_prev_k, float)[:3, :3], np.asarray(T_prev_k, float)[:3, 3]
@@ -231,7 +231,7 @@ def triangulated_points(uv_px: np.ndarray, desc: np.ndarray, prev_uv_px: np.ndar
 def verify_corners(new: CornerFeatures, old: CornerFeatures, camera: PinholeCamera,
                    config: LoopConfig, rng: np.random.Generator) -> VerifiedLoop | None:
     """Essential-matrix check, then RANSAC Sim(3) ``S_old_new`` (new's units -> old's), or None."""
-    pairs = _match(new.descriptors, old.descriptors, config.hamming_ratio)
+    pairs = match_descriptors(new.descriptors, old.descriptors, config.hamming_ratio)
     if len(pairs) < max(config.min_matches, 2 * config.min_depth_inliers):
         return None  # a true revisit matches hundreds of corners; wrong places a few dozen
     uv_new, uv_old = new.uv_px[pairs[:, 0]], old.uv_px[pairs[:, 1]]

@@ -78,7 +78,10 @@ class VerifiedLoop:
     sigmas: np.ndarray | None = None
 
 
-def _match(d_new: np.ndarray, d_old: np.ndarray, ratio: float) -> np.ndarray:
+def match_descriptors(d_new: np.ndarray, d_old: np.ndarray, ratio: float) -> np.ndarray:
+    """(K, 2) index pairs ``(i_new, i_old)`` of binary descriptors (N, 32) / (M, 32) uint8 that pass
+    Lowe's ratio test on Hamming distance (``ratio``) and are under 64 bits apart; shared by the
+    loop and relocalization code."""
     if len(d_new) < 2 or len(d_old) < 2:
         return np.zeros((0, 2), dtype=int)
     knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d_new, d_old, k=2)
@@ -103,7 +106,7 @@ def _two_way_errors(S_old_new, p_new, p_old, uv_new, uv_old, camera) -> np.ndarr
 def verify(new: LandmarkFeatures, old: LandmarkFeatures, camera: PinholeCamera, config: LoopConfig,
            rng: np.random.Generator) -> VerifiedLoop | None:
     """RANSAC Sim(3) between two keyframes' landmarks, or None when it does not verify."""
-    pairs = _match(new.descriptors, old.descriptors, config.hamming_ratio)
+    pairs = match_descriptors(new.descriptors, old.descriptors, config.hamming_ratio)
     if len(pairs) < config.min_matches:
         return None
     p_new, p_old = new.points[pairs[:, 0]], old.points[pairs[:, 1]]

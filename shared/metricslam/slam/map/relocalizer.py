@@ -45,7 +45,7 @@ from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.initial_scale import ask_depth
 from metricslam.slam.loop import corners as corner_mod
 from metricslam.slam.loop.detector import retrieval_descriptors, retrieval_orb
-from metricslam.slam.loop.verification import LandmarkFeatures, _match, landmark_features, verify
+from metricslam.slam.loop.verification import LandmarkFeatures, match_descriptors, landmark_features, verify
 from metricslam.slam.loop.vocabulary import BinaryVocabulary
 from metricslam.slam.map.format import SavedMap
 
@@ -255,7 +255,7 @@ class Relocalizer:
         for j in range(max(0, i - LOCAL_MAP_ROWS), min(len(self._ids), i + LOCAL_MAP_ROWS + 1)):
             f = self._features[j]
             ok = np.isfinite(f.points).all(axis=1)
-            pairs = _match(new.descriptors, f.descriptors[ok], self.config.hamming_ratio)
+            pairs = match_descriptors(new.descriptors, f.descriptors[ok], self.config.hamming_ratio)
             T = T_kf_map @ self._T_map_kf[int(self._ids[j])]
             uv.append(new.uv_px[pairs[:, 0]])
             pts.append(f.points[ok][pairs[:, 1]] @ T[:3, :3].T + T[:3, 3])
