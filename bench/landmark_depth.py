@@ -300,8 +300,7 @@ def markdown(result: dict, command: str, machine: str) -> str:
     cols = [*BIN_LABELS, "all"]
     title = "# Landmark depth: network vs GT-triangulated corners"
     title += f" — {result['name']}" if result["name"] else ""
-    lines = [title,
-             "", f"Command: `{command}`  ", f"Machine: {machine}  ",
+    lines = [title, "", f"Command: `{command}`  ", f"Machine: {machine}  ",
              f"Model: `{m['path']}` (`{m['model_id']}`, {m['weights_precision']})  ",
              f"Parameters: {', '.join(f'{k}={v}' for k, v in result['params'].items() if k != 'bins_m')}", "",
              ("Cells: median of z/z_tri (corners); IQR rows: its 25th–75th percentile. z_tri: corners "

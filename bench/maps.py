@@ -4,13 +4,12 @@ latency and map-frame accuracy on a rendered revisit and on KITTI odometry 06.
 * **Size and I/O**: the rendered revisit's session-1 map, its keyframes tiled (new ids, same
   content) to 1,000 keyframes, saved and loaded ``--repeats`` times (median wall time; bytes on
   disk).
-* **Rendered revisit** (the e2e test's setup, ``tests/test_map_relocalize.py``): loop render
-  (300 frames, seed 3, 620x188); session 1 = frames 0-149 ``--save-map``; session 2 = frames
-  190-299 ``--map`` (starts outside the map, re-enters it from behind). Reports the frame it
-  relocalized at vs. the first frame within 10 m of the mapped path, position RMSE in the map
-  frame against ground truth rigidly aligned to session 1 over the revisited stretch (and session
-  1's own RMSE there), the scale of ``S_map_world``, and a map of another world (seed 5), which
-  must not relocalize.
+* **Rendered revisit** (``tests/test_map_relocalize.py``'s setup): loop render (300 frames, seed 3,
+  620x188); session 1 = frames 0-149 ``--save-map``; session 2 = frames 190-299 ``--map`` (starts
+  outside the map). The frame it relocalized at vs. the first within 10 m of the mapped path; map-frame
+  RMSE against the truth rigidly aligned to session 1 on the revisited stretch, session 1's own RMSE
+  there, each session's shape (``_sim3``: Sim(3)-aligned) and scale (truth per estimate); the scale of
+  ``S_map_world``; a map of another world (seed 5) must not relocalize.
 * **KITTI raw 0013** (issue #34's real target, :func:`kitti_raw_0013`): sessions 0-99 / 40-143,
   overlap error against session 1 and ATE against the GPS/INS truth, a map of raw 0001 that
   must not relocalize it (``--data``: the shared data folder).
@@ -38,7 +37,7 @@ import numpy as np
 from bench.machine import command_line, publish
 from metricslam.depth import RENDERED_MODEL_PATH
 from metricslam.geometry import sim3
-from metricslam.geometry.align import align_trajectory
+from metricslam.geometry.align import align_trajectory, apply_to_poses as sim3_apply
 from metricslam.slam.map.format import SavedMap, load_map, save_map
 from metricslam.trajectory.io import read_kitti_poses
 from metricslam_cli.main import main as cli
@@ -138,18 +137,20 @@ def rendered_revisit(work: Path) -> dict:
     skip = set(st1["pose_invalid_frame_indices"]) | set(st1["interpolated_frame_indices"])
     rev = [i for i in range(60) if i not in skip]
     T, al = align_trajectory(e1[rev], gt[rev], with_scale=False)
-    rmse1 = float(np.sqrt(np.mean(np.sum((al[:, :3, 3] - gt[rev, :3, 3]) ** 2, axis=1))))
+    S1, al1 = align_trajectory(e1[rev], gt[rev])  # shape and scale of the map there
     out = {"exit_code": code, "relocalized": m["relocalized"], "first_localized_frame": m["first_localized_frame"],
            "entry_frame": entry, "matches": m["relocalization_matches"], "matches_used": m["matches_used"],
-           "query_ms_mean": m["relocalization_query_ms_mean"], "session1_rmse_m": rmse1}
+           "query_ms_mean": m["relocalization_query_ms_mean"], "session1_rmse_m": _rmse(al, gt[rev]),
+           "session1_rmse_sim3_m": _rmse(al1, gt[rev]), "session1_truth_per_est": sim3.scale(S1)}
     if m["relocalized"]:
         e2 = read_kitti_poses(work / "r2.txt")
         f0 = m["first_localized_frame"]
-        truth = gt[190 + f0: 190 + f0 + len(e2), :3, 3]
-        p = e2[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
-        path = float(np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1)))
-        out.update({"session2_rmse_m": float(np.sqrt(np.mean(np.sum((p - truth) ** 2, axis=1)))),
-                    "session2_path_m": path, "scale_map_per_session": sim3.scale(np.array(m["S_map_world"]))})
+        g2 = gt[190 + f0: 190 + f0 + len(e2)]
+        S2, al2 = align_trajectory(e2, g2)  # session 2 against its own truth: shape, own scale
+        out.update({"session2_rmse_m": _rmse(sim3_apply(T, e2), g2),
+                    "session2_path_m": float(np.sum(np.linalg.norm(np.diff(g2[:, :3, 3], axis=0), axis=1))),
+                    "scale_map_per_session": sim3.scale(np.array(m["S_map_world"])),
+                    "session2_rmse_sim3_own_m": _rmse(al2, g2), "session2_truth_per_est": sim3.scale(S2)})
     other = work / "other150"
     if not (other / "poses" / "00.txt").is_file():
         generate_sequence(other, 150, seed=5, size=(620, 188), path="loop")
@@ -188,10 +189,14 @@ def kitti06(work: Path, starts: tuple[int, ...] = (10, 20)) -> dict | None:
     return out
 
 
+def _rmse(est: np.ndarray, gt: np.ndarray) -> float:
+    """Position RMSE (m) of two (N, 4, 4) pose arrays."""
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
 def _ate_se3_m(est: np.ndarray, gt: np.ndarray) -> float:
     """Position RMSE (m) after the best rigid (SE(3)) alignment of ``est`` to ``gt`` (N, 4, 4)."""
-    _, al = align_trajectory(est, gt, with_scale=False)
-    return float(np.sqrt(np.mean(np.sum((al[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+    return _rmse(align_trajectory(est, gt, with_scale=False)[1], gt)
 
 
 def _run_or_refused(seq: Path, out: Path, *flags: str) -> tuple[int, dict | None]:
@@ -233,8 +238,7 @@ def kitti_raw_0013(work: Path, data: Path) -> dict | None:
         d = np.linalg.norm(e2[:len(overlap), :3, 3] - e1[overlap, :3, 3], axis=1)
         path = float(np.sum(np.linalg.norm(np.diff(gt[overlap, :3, 3], axis=0), axis=1)))
         ext = st2.get("map_saved", {}).get("extended", {})
-        out.update({
-            "overlap_frames": f"{int(overlap[0])}-{int(overlap[-1])}", "overlap_path_m": path,
+        out.update({"overlap_frames": f"{int(overlap[0])}-{int(overlap[-1])}", "overlap_path_m": path,
             "overlap_vs_session1_rmse_m": float(np.sqrt(np.mean(d ** 2))), "overlap_vs_session1_max_m": float(d.max()),
             "overlap_vs_session1_rmse_pct_of_path": 100 * float(np.sqrt(np.mean(d ** 2))) / path,
             "overlap_vs_session1_max_pct_of_path": 100 * float(d.max()) / path,
@@ -256,11 +260,16 @@ def kitti_raw_0013(work: Path, data: Path) -> dict | None:
 def _table(d: dict) -> list[str]:
     cols = list(d)
     keys = list(dict.fromkeys(k for c in cols for k in d[c]))
-
-    def fmt(v):
-        return f"{v:.3f}" if isinstance(v, float) else str(v)
     return (["| | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
-            + [f"| {k} | " + " | ".join(fmt(d[c].get(k, "")) for c in cols) + " |" for k in keys])
+            + [f"| {k} | " + " | ".join(_fmt(d[c].get(k, "")) for c in cols) + " |" for k in keys])
+
+
+def _fmt(v) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def _kv(d: dict) -> list[str]:
+    return ["| | value |", "| --- | --- |"] + [f"| {k} | {_fmt(v)} |" for k, v in d.items()]
 
 
 def render(r: dict, command: str, machine: str) -> str:
@@ -272,9 +281,7 @@ def render(r: dict, command: str, machine: str) -> str:
              f"{io['keyframes']} keyframes ({io['bow_rows']} loop-database rows, {io['features']} features): "
              f"**{io['mb']:.1f} MB**, save **{io['save_s_median']:.2f} s**, load **{io['load_s_median']:.2f} s** "
              f"(median of {io['repeats']}; checksums included).", "",
-             "## Rendered revisit (session 2 starts outside the map)", "",
-             "| | value |", "| --- | --- |"]
-    lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in rv.items()]
+             "## Rendered revisit (session 2 starts outside the map)", "", *_kv(rv)]
     lines += ["", "## KITTI odometry 06 (session 1: all 51 frames; session 2: frames START-50 of the same "
               "drive, renumbered; its map-frame positions against session 1's, no alignment)", ""]
     if k is None:
@@ -287,13 +294,11 @@ def render(r: dict, command: str, machine: str) -> str:
     if k13 is None:
         lines.append("KITTI raw 0013 not found under --data; skipped.")
     else:
-        lines += ["| | value |", "| --- | --- |"]
-        lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in k13.items()]
+        lines += _kv(k13)
     live = r.get("live_0013")
     if live is not None:
         lines += ["", "## KITTI raw 0013 session 2 through the live stack (`up --map`, `replay --rate 10 "
-                  "--max-in-flight 3`, `poses --trajectory`; bench/maps_live.py)", "", "| | value |", "| --- | --- |"]
-        lines += [f"| {key} | {val if not isinstance(val, float) else f'{val:.3f}'} |" for key, val in live.items()]
+                  "--max-in-flight 3`, `poses --trajectory`; bench/maps_live.py)", "", *_kv(live)]
     return "\n".join(lines) + "\n"
 
 

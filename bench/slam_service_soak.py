@@ -80,8 +80,7 @@ def run_config(seq_dir: Path, frames: int, env_overrides: dict[str, str], warmup
         result = soak(client, seq_dir, "soak0", frames, proc.pid)
     samples = result["samples"]
     result.pop("last_status", None)
-    result.update({
-        "env": env_overrides,
+    result.update({"env": env_overrides,
         "rss_mib_start": samples[0][1], "rss_mib_at_warmup": next(r for f, r in samples if f >= warmup_frames),
         "rss_mib_end": samples[-1][1], "rss_mib_max": max(r for _, r in samples),
         "growth_mib_per_1000_frames_after_warmup": round(growth_mib_per_1000_frames(samples, warmup_frames), 1),

@@ -52,8 +52,7 @@ def run_sequence(path: Path, preset: str | None, background: bool, max_frames: i
     est = np.array([e.T_world_cam for e in pipe.trajectory()])
     ev = evaluate_poses(seq.T_world_cam_gt[:n], est, name=path.name).result
     st = pipe.stats()
-    return {
-        "sequence": str(path), "name": path.name, "preset": preset, "frames": n, "background_ba": background,
+    return {"sequence": str(path), "name": path.name, "preset": preset, "frames": n, "background_ba": background,
         "path_length_m": ev.path_length_m, "ate_sim3_m": ev.ate_rmse_sim3_m,
         "ate_sim3_pct_of_distance": 100.0 * ev.ate_rmse_sim3_m / ev.path_length_m,
         "r_rel_deg_per_100m": ev.r_rel_deg_per_100m, "t_rel_pct_unscaled": ev.t_rel_pct,
@@ -65,8 +64,7 @@ def run_sequence(path: Path, preset: str | None, background: bool, max_frames: i
 
 
 def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> str:
-    out = ["# Local VO accuracy and speed", "",
-           f"Command: `{command}`", "", f"Machine: {host}", "",
+    out = ["# Local VO accuracy and speed", "", f"Command: `{command}`", "", f"Machine: {host}", "",
            *[f"* {n}" for n in notes], *([""] if notes else []),
            "VO alone (no global graph, no learned scale); ATE after Sim(3) alignment, as % of the "
            "ground-truth path length; r_rel is the KITTI devkit rotational error (deg/100 m) over "

@@ -55,8 +55,7 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
     worst = np.argsort(-lat)[:20] if lat.size else []
     publisher.close()
     recorder.close()
-    return {
-        "camera_id": camera_id, "rate_hz": rate_hz, "frames": len(frames),
+    return {"camera_id": camera_id, "rate_hz": rate_hz, "frames": len(frames),
         "achieved_send_hz": len(frames) / send_s if send_s > 0 else None,
         "poses": len(lat), "queue_drops": status.queue_drops if status else None,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
