@@ -227,10 +227,8 @@ class Cameras:
         """Close the cameras idle for ``camera_idle_timeout_s``; returns how many."""
         now = time.monotonic()
         with self._lock:
-            idle = [w for w in self._workers.values() if w.idle_s(now) >= self.settings.camera_idle_timeout_s]
-            for worker in idle:
-                del self._workers[worker.camera_id]
-                self._closing[worker.camera_id] = threading.Event()
+            idle = self._take([c for c, w in self._workers.items()
+                               if w.idle_s(now) >= self.settings.camera_idle_timeout_s])
         for worker in idle:
             self._close(worker, f"no frame for {self.settings.camera_idle_timeout_s:g} s")
         self._expire(now)
@@ -240,25 +238,28 @@ class Cameras:
         """Close the camera now, as :meth:`close_idle` does (its final trajectory is kept);
         False when it has no running session."""
         with self._lock:
-            worker = self._workers.pop(camera_id, None)
-            if worker is not None:
-                self._closing[camera_id] = threading.Event()
-        if worker is not None:
+            taken = self._take([camera_id])
+        for worker in taken:
             self._close(worker, why)
-        return worker is not None
+        return bool(taken)
 
     def close_all(self) -> None:
         """Stop taking cameras and close every one (service stop)."""
         with self._lock:
             self._accepting = False
-            workers = list(self._workers.values())
-            self._workers.clear()
-            for worker in workers:
-                self._closing[worker.camera_id] = threading.Event()
+            workers = self._take(list(self._workers))
         for worker in workers:
             self._close(worker, "the SLAM service is stopping")
         if self.store is not None:
             self.store.close()
+
+    def _take(self, camera_ids: list[str]) -> list[CameraWorker]:
+        """Remove these cameras' workers and mark each as closing (the caller holds the lock and
+        closes them after releasing it: a close runs the final solve)."""
+        taken = [self._workers.pop(c) for c in camera_ids if c in self._workers]
+        for worker in taken:
+            self._closing[worker.camera_id] = threading.Event()
+        return taken
 
     def _close(self, worker: CameraWorker, why: str) -> None:
         frame_id = "world"
