@@ -307,6 +307,55 @@ def test_fine_tuning_starts_from_an_exported_onnx_model(tmp_path):
     assert torch.allclose(ft["model"][key], trained[key], atol=1e-6)  # a vanishing step away
     with pytest.raises(TrainingError, match="does not exist"):
         weights_from_onnx(tmp_path / "missing.onnx")
+    with pytest.raises(TrainingError, match="one network, not an ensemble"):
+        weights_from_onnx(tmp_path / "m.onnx", member=0)
+
+
+def test_fine_tuning_starts_from_one_network_of_a_seed_ensemble(tmp_path):
+    """The shipped float32 default is a seed ensemble (``nets.<i>.`` weights): ``init_member``
+    picks the network a fine-tune starts from; without it the error says how."""
+    from metricslam_train.export import export_ensemble, load_checkpoint, weights_from_onnx
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    a = train(_config(tmp_path, steps=1, model_id="seed-a", run_dir=str(tmp_path / "a")), progress=False)
+    b = train(_config(tmp_path, steps=1, model_id="seed-b", seed=7, run_dir=str(tmp_path / "b")), progress=False)
+    gen = torch.Generator().manual_seed(0)
+    for ckpt in (a, b):  # one step leaves untrained heads equal across members (the exporter merges equal tensors)
+        c = load_checkpoint(ckpt)
+        c["model"] = {k: v + 1e-3 * torch.randn(v.shape, generator=gen) for k, v in c["model"].items()}
+        torch.save(c, ckpt)
+    export_ensemble([a, b], tmp_path / "ens.onnx", weights="raw")
+    for member, ckpt in enumerate((a, b)):
+        state, contract = weights_from_onnx(tmp_path / "ens.onnx", member)
+        trained = load_checkpoint(ckpt)["model"]
+        assert all(torch.equal(state[k], trained[k]) for k in trained)
+        assert contract.model_id == ("seed-a", "seed-b")[member]
+    for bad in (None, 2):
+        with pytest.raises(TrainingError, match=r"seed ensemble of 2 networks \(seed-a\+seed-b\).*init_member: 0 … 1"):
+            weights_from_onnx(tmp_path / "ens.onnx", bad)
+    ft = train(_config(tmp_path, steps=1, lr=1e-12, run_dir=str(tmp_path / "ft"), init_from=str(tmp_path / "ens.onnx"),
+                       init_member=1), progress=False)
+    assert "initialized from ens.onnx network 1 (seed-b)" in load_checkpoint(ft)["meta"]["training_data"]
+    with pytest.raises(ValidationError, match="init_member"):
+        _config(tmp_path, init_member=0)
+
+
+def test_the_shipped_float32_model_can_start_a_fine_tune():
+    """docs/own_camera.md fine-tunes from the shipped float32 model: each of its networks loads."""
+    from metricslam.depth import FLOAT32_MODEL_PATH
+    from metricslam_train.export import weights_from_onnx
+
+    import onnx
+    from metricslam.depth.contract import ModelContract
+
+    shipped = ModelContract.from_metadata({p.key: p.value for p in onnx.load(str(FLOAT32_MODEL_PATH)).metadata_props})
+    ids = []
+    for member in range(3):
+        state, contract = weights_from_onnx(FLOAT32_MODEL_PATH, member)
+        ids.append(contract.model_id)
+        assert state and all(torch.isfinite(v.float()).all() for v in state.values())
+    assert "+".join(ids) == shipped.model_id and len(set(ids)) == 3
 
 
 def test_canonical_runs_know_each_caches_focal_length_at_the_input(tmp_path):

@@ -112,6 +112,10 @@ class TrainConfig(BaseModel):
     #: ONNX model written by `metricslam export` (e.g. the shipped depth_l3.onnx: fine-tune it);
     #: the optimizer and step count start fresh, and its training data is recorded with this run's.
     init_from: str | None = None
+    #: with ``init_from`` a seed ensemble ONNX (the shipped ``depth_l3.onnx`` since v4): which of
+    #: its networks starts this run (0 … N-1; one network costs a third of a three-seed ensemble per
+    #: keyframe); None for a single network or a checkpoint
+    init_member: int | None = Field(None, ge=0)
     #: canonical camera (depth contract v2, ``metricslam.depth.canonical``): the network input's focal
     #: lengths, px at ``input_width x input_height``; both or neither. None: contract v1 (the whole
     #: image resized). With them, each cache's labels are rescaled to the canonical focal length.
@@ -133,6 +137,8 @@ class TrainConfig(BaseModel):
     def _canonical_both_or_neither(self) -> "TrainConfig":
         if (self.canonical_fx_px is None) != (self.canonical_fy_px is None):
             raise ValueError("canonical_fx_px and canonical_fy_px go together: give both (contract v2) or neither (v1)")
+        if self.init_member is not None and not (self.init_from or "").endswith(".onnx"):
+            raise ValueError("init_member names a network of an ONNX ensemble: it needs init_from: MODEL.onnx")
         return self
 
     @classmethod

@@ -63,12 +63,19 @@ def network_from_checkpoint(ckpt: dict, weights: str = "auto") -> PyramidDepthNe
     return net.eval()
 
 
-def weights_from_onnx(path: str | Path) -> tuple[dict[str, torch.Tensor], ModelContract]:
+def weights_from_onnx(path: str | Path, member: int | None = None) -> tuple[dict[str, torch.Tensor], ModelContract]:
     """The network weights and contract of a float32 ONNX file written by :func:`export_onnx`
     (e.g. the shipped ``depth_l3.onnx``), to fine-tune from it (``init_from: MODEL.onnx``).
 
-    The exporter keeps every parameter as an initializer named ``net.<state_dict key>``; an int8
-    copy (``metricslam quantize``) does not, and is refused.
+    The exporter keeps every parameter as an initializer named ``net.<state_dict key>``, or, in a
+    seed ensemble (:func:`export_ensemble`, the shipped default since v4), ``nets.<i>.<key>`` per
+    member: an ensemble needs ``member`` (0 … N-1), and the contract returned is that member's
+    (its own ``model_id``; ``params`` of one network). An int8 copy (``metricslam quantize``)
+    keeps no float32 weights and is refused.
+
+    Raises:
+        TrainingError: no such file, an int8 copy, an ensemble without a valid ``member``, or a
+            ``member`` for a single network.
     """
     from onnx import numpy_helper
 
@@ -79,11 +86,28 @@ def weights_from_onnx(path: str | Path) -> tuple[dict[str, torch.Tensor], ModelC
     contract = ModelContract.from_metadata({p.key: p.value for p in model.metadata_props})
     inits = {i.name: i for i in model.graph.initializer}
     keys = PyramidDepthNet().state_dict().keys()
-    missing = [k for k in keys if f"net.{k}" not in inits]
+    n_members = len({name.split(".")[1] for name in inits if name.startswith("nets.")})
+    if n_members:
+        ids = contract.model_id.split("+")
+        if member is None or not 0 <= member < n_members:
+            raise TrainingError(f"{src} is a seed ensemble of {n_members} networks ({contract.model_id}): "
+                                f"fine-tune one of them, init_member: 0 … {n_members - 1} in the config "
+                                f"(got {member})")
+        prefix = f"nets.{member}."
+        contract = contract.model_copy(update={
+            "model_id": ids[member] if len(ids) == n_members else f"{contract.model_id}[{member}]",
+            "params": contract.params // n_members})
+    elif member is not None:
+        raise TrainingError(f"{src} is one network, not an ensemble: remove init_member (got {member})")
+    else:
+        prefix = "net."
+    # (the exporter keeps one initializer for tensors of equal value, under one of their names:
+    # trained networks do not share any, so a missing name is refused rather than guessed)
+    missing = [k for k in keys if f"{prefix}{k}" not in inits]
     if missing:
         raise TrainingError(f"{src} lacks the float32 weights {missing[:3]}…: fine-tune from the float32 model "
                             "(e.g. depth_l3.onnx), not its int8 copy")
-    state = {k: torch.from_numpy(numpy_helper.to_array(inits[f"net.{k}"]).copy()) for k in keys}
+    state = {k: torch.from_numpy(numpy_helper.to_array(inits[f"{prefix}{k}"]).copy()) for k in keys}
     return state, contract
 
 

@@ -190,6 +190,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
+    onnx_init = None
+    if cfg.init_from and cfg.init_from.endswith(".onnx"):  # before the caches: a wrong file fails at once
+        from metricslam_train.export import weights_from_onnx
+
+        onnx_init = weights_from_onnx(cfg.init_from, cfg.init_member)
     caches = prepare_caches(cfg)
     training_data = caches.description
     data = StereoPairs(caches.paths, canonical_label_scales(cfg, caches))
@@ -203,14 +208,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     step = 0
     last = run_dir / "last.pt"
-    if cfg.init_from and cfg.init_from.endswith(".onnx"):
-        from metricslam_train.export import weights_from_onnx
-
-        state, contract = weights_from_onnx(cfg.init_from)
+    if onnx_init is not None:
+        state, contract = onnx_init
         if not last.is_file():
             net.load_state_dict(state)
             log.info("initialized weights from %s (%s)", cfg.init_from, contract.model_id)
-        training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name} ({contract.model_id}), "
+        which = "" if cfg.init_member is None else f" network {cfg.init_member}"
+        training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name}{which} ({contract.model_id}), "
                          f"trained on: {contract.training_data}")
     elif cfg.init_from:
         init = torch.load(cfg.init_from, map_location=device, weights_only=False)
