@@ -1,6 +1,6 @@
-"""Depth recipes v4, v5, v6 (issue #31): leave-one-drive-out folds, seeds and their ensemble, scored and
+"""Depth recipes v4-v8 (issue #31): leave-one-drive-out folds, seeds and their ensemble, scored and
 decided by the rule committed before any of the recipe's numbers was seen
-(``docs/history/rule_depth_<recipe>.md``; v5 and v6 reuse v4's decisions).
+(``docs/history/rule_depth_<recipe>.md``; v5-v8 reuse v4's step and form, each rule its own verdict).
 
 Folds (each scored only by runs that never trained on its drive; ``R`` is ``--recipe``):
 
@@ -32,7 +32,7 @@ from bench.machine import command_line, describe, write_results
 from metricslam.depth import DEFAULT_MODEL_PATH
 
 #: the recipes with committed rules
-RECIPES = ("v4", "v5", "v6", "v7")
+RECIPES = ("v4", "v5", "v6", "v7", "v8")
 #: fold name -> (run prefix after "<recipe>_", kind, sequence folder, ground truth) relative to --data
 FOLDS = {
     "06": ("all", "slam", "kitti_odometry/sequences/06", "kitti_odometry/poses/06.txt"),

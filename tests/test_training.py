@@ -369,3 +369,21 @@ def test_canonical_runs_know_each_caches_focal_length_at_the_input(tmp_path):
     width_full = cv2.imread(str(seq.left_paths[0]), cv2.IMREAD_UNCHANGED).shape[1]
     assert caches.input_fx_px == [pytest.approx(seq.fx_px * W / width_full)]
     assert canonical_label_scales(cfg, caches) == [pytest.approx(100.0 / caches.input_fx_px[0])]
+
+
+def test_a_wider_network_trains_and_exports_with_its_width(tmp_path):
+    """``width`` (issue #31's wider-network experiment) multiplies every channel count; the
+    checkpoint records it, so export rebuilds the same network."""
+    from metricslam_train.export import export_checkpoint, load_checkpoint, network_from_checkpoint
+    from metricslam_train.network import PyramidDepthNet, count_parameters
+    from metricslam_train.train import train
+
+    torch.set_num_threads(1)
+    narrow, wide = (count_parameters(PyramidDepthNet(width=w)) for w in (1.0, 1.7))
+    assert 2.5 * narrow < wide < 5_000_000  # the issue's bound on a wider network
+    ckpt = train(_config(tmp_path, steps=1, width=0.5), progress=False)
+    meta = load_checkpoint(ckpt)["meta"]
+    net = network_from_checkpoint(load_checkpoint(ckpt), "raw")
+    assert meta["width"] == 0.5 and count_parameters(net) < narrow / 3
+    contract = export_checkpoint(ckpt, tmp_path / "w.onnx")
+    assert contract.params == count_parameters(net)

@@ -100,6 +100,8 @@ class TrainConfig(BaseModel):
     norm_mean: float = 0.45
     norm_std: float = Field(0.25, gt=0)
     max_d_frac: float = Field(0.3, gt=0, le=1)
+    #: channel multiplier of the network (``network.PyramidDepthNet``; cost ~ its square); 1.0 ships
+    width: float = Field(1.0, gt=0, le=2)
     steps: int = Field(3000, ge=1)
     batch_size: int = Field(8, ge=1)
     lr: float = Field(1e-4, gt=0)

@@ -58,7 +58,7 @@ def network_from_checkpoint(ckpt: dict, weights: str = "auto") -> PyramidDepthNe
     if weights == "ema" and "ema" not in ckpt:
         raise TrainingError("this checkpoint has no weight average: train with ema_decay set, or export raw weights")
     use_ema = weights == "ema" or (weights == "auto" and "ema" in ckpt)
-    net = PyramidDepthNet(max_d_frac=float(ckpt["meta"]["max_d_frac"]))
+    net = PyramidDepthNet(max_d_frac=float(ckpt["meta"]["max_d_frac"]), width=float(ckpt["meta"].get("width", 1.0)))
     net.load_state_dict(ckpt["ema"] if use_ema else ckpt["model"])
     return net.eval()
 

@@ -24,7 +24,10 @@ Blocks (all 3x3 convs, ReLU):
   upsampling of its disparity; L5..L3 concatenate their own features with both.
 
 Parameter count: see :func:`count_parameters` (1,597,672 with the defaults, vs the paper's
-2.3 M; the text does not specify the difference, DESIGN.md notes the same gap).
+2.3 M; the text does not specify the difference, DESIGN.md notes the same gap). ``width``
+multiplies every channel count (stem, features, estimators; the cost grows about as its square):
+an experiment of issue #31's (a wider network as a seed-spread stabilizer), 1.0 in every shipped
+model.
 
 Example::
 
@@ -44,6 +47,11 @@ from torch import nn
 FEATURE_CHANNELS = (16, 32, 64, 128)  # L3..L6
 ESTIMATOR_CHANNELS = (96, 64, 32, 8)
 STEM_CHANNELS = (8, 16)  # L1, L2
+
+
+def _widened(channels: tuple[int, ...], width: float) -> tuple[int, ...]:
+    """``channels`` times ``width``, rounded (at least 1 each)."""
+    return tuple(max(1, round(c * width)) for c in channels)
 
 
 def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Conv2d:
@@ -69,9 +77,9 @@ class FeatureBlock(nn.Module):
 class DisparityEstimator(nn.Module):
     """3x3 residual layers 96/64/32/8 then sigmoid: features -> (B, 2, H, W) d_frac (left, right)."""
 
-    def __init__(self, c_in: int, max_d_frac: float) -> None:
+    def __init__(self, c_in: int, max_d_frac: float, channels: tuple[int, ...] = ESTIMATOR_CHANNELS) -> None:
         super().__init__()
-        chans = (c_in, *ESTIMATOR_CHANNELS)
+        chans = (c_in, *channels)
         self.convs = nn.ModuleList(_conv(a, b) for a, b in zip(chans[:-1], chans[1:]))
         self.skips = nn.ModuleList(
             nn.Identity() if a == b else nn.Conv2d(a, b, 1, bias=False) for a, b in zip(chans[:-1], chans[1:])
@@ -94,23 +102,26 @@ class PyramidDepthNet(nn.Module):
     left and channel 1 the right disparity, as a fraction of image width in (0, max_d_frac).
     """
 
-    def __init__(self, max_d_frac: float = 0.3) -> None:
+    def __init__(self, max_d_frac: float = 0.3, width: float = 1.0) -> None:
         super().__init__()
-        s1, s2 = STEM_CHANNELS
+        s1, s2 = _widened(STEM_CHANNELS, width)
+        feature_channels = _widened(FEATURE_CHANNELS, width)
         self.stem = nn.Sequential(_conv(1, s1, 2), nn.ReLU(inplace=True), _conv(s1, s2, 2), nn.ReLU(inplace=True))
-        chans = (s2, *FEATURE_CHANNELS)
+        chans = (s2, *feature_channels)
         self.features = nn.ModuleList(FeatureBlock(a, b) for a, b in zip(chans[:-1], chans[1:]))
         # fused channels at each level: own features (+ upsampled coarser fused features + 2 disp)
-        fused = [FEATURE_CHANNELS[-1]]
-        for c in reversed(FEATURE_CHANNELS[:-1]):
+        fused = [feature_channels[-1]]
+        for c in reversed(feature_channels[:-1]):
             fused.insert(0, c + c + 2)
         self.fused_channels = tuple(fused)  # L3..L6
         self.upsamplers = nn.ModuleList(
-            nn.ConvTranspose2d(fused[k + 1], FEATURE_CHANNELS[k], 4, stride=2, padding=1)
-            for k in range(len(FEATURE_CHANNELS) - 1)
+            nn.ConvTranspose2d(fused[k + 1], feature_channels[k], 4, stride=2, padding=1)
+            for k in range(len(feature_channels) - 1)
         )
-        self.estimators = nn.ModuleList(DisparityEstimator(c, max_d_frac) for c in fused)
+        estimator_channels = _widened(ESTIMATOR_CHANNELS, width)
+        self.estimators = nn.ModuleList(DisparityEstimator(c, max_d_frac, estimator_channels) for c in fused)
         self.max_d_frac = float(max_d_frac)
+        self.width = float(width)
 
     def forward(self, image: torch.Tensor) -> list[torch.Tensor]:
         x = self.stem(image)

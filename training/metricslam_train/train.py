@@ -128,6 +128,7 @@ def checkpoint_meta(cfg: TrainConfig, training_data: str) -> dict:
     return {
         "model_id": cfg.model_id,
         "max_d_frac": cfg.max_d_frac,
+        "width": cfg.width,
         "input_height": cfg.input_height,
         "input_width": cfg.input_width,
         "normalization": {"scale": 1 / 255, "mean": cfg.norm_mean, "std": cfg.norm_std},
@@ -202,7 +203,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
         raise TrainingError("the training caches hold no pairs")
 
     torch.manual_seed(cfg.seed)
-    net = PyramidDepthNet(max_d_frac=cfg.max_d_frac).to(device)
+    net = PyramidDepthNet(max_d_frac=cfg.max_d_frac, width=cfg.width).to(device)
     optim = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
