@@ -212,7 +212,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> Path:
     if onnx_init is not None:
         state, contract = onnx_init
         if not last.is_file():
-            net.load_state_dict(state)
+            try:
+                net.load_state_dict(state)
+            except RuntimeError as exc:  # e.g. another width
+                raise TrainingError(f"init_from {cfg.init_from} does not fit this config's network "
+                                    f"(width {cfg.width:g}): {str(exc).splitlines()[0]}") from None
             log.info("initialized weights from %s (%s)", cfg.init_from, contract.model_id)
         which = "" if cfg.init_member is None else f" network {cfg.init_member}"
         training_data = (f"{training_data}; initialized from {Path(cfg.init_from).name}{which} ({contract.model_id}), "
