@@ -220,7 +220,7 @@ def build() -> tuple[str, str]:
                  corner_table(final_corners), "", _src("landmark_depth_v3_final_06.json", final_corners), "",
                  slam_table(final_slam), "", _src("accuracy_v3_final_06.json", final_slam), ""]
     for name, what in (("v4_folds", "v4, every real drive"), ("v5_folds", "v5, v4 + six rendered streets"),
-                       ("v6_folds", "v6, v4 + 30 rendered streets"), ("v7_folds", "v7, v4 under contract v2"),
+                       ("v6_folds", "v6, v4 + 30 rendered streets"), ("v7_folds", "v7, v4 under contract v2"), ("v8_folds", "v8, v4 x1.7 wide"),
                        ("v5_ship", "v5 ship attempt: its all-drive runs, under rule_depth_ship.md")):
         folds = _load(f"depth_{name}.json")
         if folds:
