@@ -136,8 +136,7 @@ def rendered_revisit(work: Path) -> dict:
     e1 = read_kitti_poses(work / "r1.txt")
     skip = set(st1["pose_invalid_frame_indices"]) | set(st1["interpolated_frame_indices"])
     rev = [i for i in range(60) if i not in skip]
-    T, al = align_trajectory(e1[rev], gt[rev], with_scale=False)
-    S1, al1 = align_trajectory(e1[rev], gt[rev])  # shape and scale of the map there
+    (T, al), (S1, al1) = (align_trajectory(e1[rev], gt[rev], with_scale=w) for w in (False, True))  # map; shape
     out = {"exit_code": code, "relocalized": m["relocalized"], "first_localized_frame": m["first_localized_frame"],
            "entry_frame": entry, "matches": m["relocalization_matches"], "matches_used": m["matches_used"],
            "query_ms_mean": m["relocalization_query_ms_mean"], "session1_rmse_m": _rmse(al, gt[rev]),
@@ -237,16 +236,18 @@ def kitti_raw_0013(work: Path, data: Path) -> dict | None:
         overlap = frames[frames < 100]
         d = np.linalg.norm(e2[:len(overlap), :3, 3] - e1[overlap, :3, 3], axis=1)
         path = float(np.sum(np.linalg.norm(np.diff(gt[overlap, :3, 3], axis=0), axis=1)))
-        ext = st2.get("map_saved", {}).get("extended", {})
-        out.update({"overlap_frames": f"{int(overlap[0])}-{int(overlap[-1])}", "overlap_path_m": path,
-            "overlap_vs_session1_rmse_m": float(np.sqrt(np.mean(d ** 2))), "overlap_vs_session1_max_m": float(d.max()),
-            "overlap_vs_session1_rmse_pct_of_path": 100 * float(np.sqrt(np.mean(d ** 2))) / path,
+        rmse, saved = float(np.sqrt(np.mean(d ** 2))), st2.get("map_saved", {})
+        out.update({
+            "overlap_frames": f"{int(overlap[0])}-{int(overlap[-1])}", "overlap_path_m": path,
+            "overlap_vs_session1_rmse_m": rmse, "overlap_vs_session1_max_m": float(d.max()),
+            "overlap_vs_session1_rmse_pct_of_path": 100 * rmse / path,
             "overlap_vs_session1_max_pct_of_path": 100 * float(d.max()) / path,
-            "ate_se3_session2_m": _ate_se3_m(e2, gt[frames]), "ate_se3_single_run_same_frames_m": _ate_se3_m(e_all[frames], gt[frames]),
+            "ate_se3_session2_m": _ate_se3_m(e2, gt[frames]),
+            "ate_se3_single_run_same_frames_m": _ate_se3_m(e_all[frames], gt[frames]),
             "ate_se3_single_run_0_143_m": _ate_se3_m(e_all, gt), "ate_frames": f"{int(frames[0])}-143",
             "scale_map_per_session": sim3.scale(np.array(m["S_map_world"])),
-            "extended_map_keyframes": st2.get("map_saved", {}).get("keyframes"),
-            "extended_cross_session_factors": ext.get("cross_session_factors"),
+            "extended_map_keyframes": saved.get("keyframes"),
+            "extended_cross_session_factors": saved.get("extended", {}).get("cross_session_factors"),
             "single_run_frames": st_all.get("frames")})
     if other.is_dir():
         run(other, work / "k01.txt", *kitti, "--save-map", str(work / "k01_map"))

@@ -64,8 +64,7 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
         "service_fps": status.fps if status else None,
         # where the tail is: the 20 slowest frames (index, ms) and p99 per 100 frames
         "slowest_frames": [[int(ks[i]), round(float(lat[i]), 1)] for i in worst],
-        "p99_ms_per_100_frames": [round(float(np.percentile(lat[j:j + 100], 99)), 1)
-                                  for j in range(0, lat.size, 100)],
+        "p99_ms_per_100_frames": [round(float(np.percentile(lat[j:j + 100], 99)), 1) for j in range(0, lat.size, 100)],
     }
 
 

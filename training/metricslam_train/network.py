@@ -121,7 +121,6 @@ class PyramidDepthNet(nn.Module):
         estimator_channels = _widened(ESTIMATOR_CHANNELS, width)
         self.estimators = nn.ModuleList(DisparityEstimator(c, max_d_frac, estimator_channels) for c in fused)
         self.max_d_frac = float(max_d_frac)
-        self.width = float(width)
 
     def forward(self, image: torch.Tensor) -> list[torch.Tensor]:
         x = self.stem(image)

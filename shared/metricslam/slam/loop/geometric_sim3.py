@@ -120,8 +120,8 @@ def measure_loop(R_old_new: np.ndarray, t_old_new_init: np.ndarray, uv_new: np.n
         sel = idx[e < gate]
         # a guess off by tens of percent puts near corners beyond the first gate: widen it (x2,
         # x4) before giving up; the refinements that follow tighten it to reprojection_px again
-        for wider in (2.0, 4.0):
-            if k > 0 or len(sel) >= min_translation_points:
+        for wider in (2.0, 4.0) if k == 0 else ():
+            if len(sel) >= min_translation_points:
                 break
             sel = idx[e < wider * gate]
         if len(sel) < min_translation_points:
