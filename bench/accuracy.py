@@ -45,8 +45,7 @@ from metricslam.trajectory.io import read_kitti_poses, write_kitti_poses
 
 METRICSLAM = [sys.executable, "-m", "metricslam_cli.main"]
 #: eval keys summarized over repeats (units in docs/evaluation.md)
-METRIC_KEYS = ("t_rel_pct", "r_rel_deg_per_100m", "ate_rmse_m", "ate_rmse_sim3_m", "scale_ratio",
-               "scale_error_pct")
+METRIC_KEYS = ("t_rel_pct", "r_rel_deg_per_100m", "ate_rmse_m", "ate_rmse_sim3_m", "scale_ratio", "scale_error_pct")
 VARIANTS = ("metric", "noscale", "noscale_sim3")
 VARIANT_LABEL = {"metric": "metricslam (learned scale, no GT)", "noscale": "--no-scale, as run",
                  "noscale_sim3": "--no-scale + Sim(3) oracle alignment"}
@@ -124,8 +123,7 @@ def summarize(results: list[dict]) -> dict:
     for key in METRIC_KEYS:
         vals = [float(r[key]) for r in results if isinstance(r.get(key), (int, float)) and np.isfinite(r[key])]
         out[key] = {"mean": float(np.mean(vals)) if vals else None,
-                    "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
-                    "n": len(vals), "values": vals}
+                    "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "n": len(vals), "values": vals}
     return out
 
 
@@ -286,8 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     for spec in args.seq:
         name, rest = spec.split("=", 1)
         seq_dir, gt = rest.rsplit(":", 1)
-        s = {"name": name, "seq_dir": seq_dir, "gt": gt,
-             "trained_on": "yes" if name in trained else "no",
+        s = {"name": name, "seq_dir": seq_dir, "gt": gt, "trained_on": "yes" if name in trained else "no",
              "repeats": [run_sequence(name, seq_dir, gt, workdir, k if n_rep > 1 else None, run_args)
                          for k in range(1, n_rep + 1)]}
         s.update(s["repeats"][0])  # runs / eval / aligned_est of the first run (figures use them)

@@ -223,8 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     data = Path(args.data)
     model = DepthModel.load(args.model, threads=1)
     results = {"command": command_line("bench.depth_accuracy", argv), "model_id": model.contract.model_id, "weights_precision": model.contract.weights_precision,
-               "training_data": model.contract.training_data,
-               "lidar": evaluate_lidar(model, data / args.lidar, args)}
+               "training_data": model.contract.training_data, "lidar": evaluate_lidar(model, data / args.lidar, args)}
     first, stop = args.lidar_frames
     lidar_name = Path(args.lidar).name
     lidar_label = f"{lidar_name} (LiDAR)" if (first, stop) == (0, None) else \

@@ -211,10 +211,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def render(results: list[RunResult], soak: dict, command: str, shape: tuple, n_frames: int,
-           server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple,
-           media: str = "png") -> str:
-    lines = [
-        "# Depth service benchmark", "", f"Command: `{command}`", "",
+           server_settings: dict, rss_start: float, load_before: tuple, load_after: tuple, media: str = "png") -> str:
+    lines = ["# Depth service benchmark", "", f"Command: `{command}`", "",
         f"Machine: {describe()}. 1-min load average {load_before[0]:.2f} before the run "
         f"and {load_after[0]:.2f} after (a load before well above 0 means other jobs competed, "
         "and the numbers are pessimistic); the client runs on the same 2 cores as the server.", "",

@@ -64,8 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         results[str(threads)] = {"network": net, "predict_inv_depth_1226x370": full}
     c = model.contract
     lines = ["| threads | network median (ms) | network p90 | network CPU time median (ms) | "
-             "predict_inv_depth median (ms) | p90 | CPU time median |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             "predict_inv_depth median (ms) | p90 | CPU time median |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for threads, r in results.items():
         full = r["predict_inv_depth_1226x370"]
         lines.append(f"| {threads} | {r['network']['median_ms']:.2f} | {r['network']['p90_ms']:.2f} | "
@@ -84,8 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                                                         "weights_precision": c.weights_precision,
                                                         "input": [c.input_height, c.input_width],
                                                         "machine": machine, "results": results}, indent=2))
-        out.with_suffix(".md").write_text(
-            f"# Depth model speed (onnxruntime, CPU)\n\nCommand: `{command}`\n\n"
+        out.with_suffix(".md").write_text(f"# Depth model speed (onnxruntime, CPU)\n\nCommand: `{command}`\n\n"
             f"Machine: {machine}.\nModel `{c.model_id}` ({c.weights_precision}), input {c.input_height}x{c.input_width}, output "
             f"{c.output_height}x{c.output_width}, {c.params} parameters. {args.repeats} runs after {args.warmup} warm-up.\n\n"
             f"{table}\n")

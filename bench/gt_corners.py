@@ -9,8 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-_LK = {"winSize": (21, 21), "maxLevel": 3,
-       "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+_LK = {"winSize": (21, 21), "maxLevel": 3, "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
 def intrinsics(camera) -> np.ndarray:
     """(3, 3) K of a :class:`~metricslam.camera.PinholeCamera` (pixels)."""

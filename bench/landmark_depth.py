@@ -309,8 +309,7 @@ def markdown(result: dict, command: str, machine: str) -> str:
         summ = result["summary"][name]
         slam_s = f", SLAM run {res['slam']['wall_s']:.0f} s" if res.get("slam") else ""
         lines += [f"## {name} ({res['pairs']} frame pairs, {res['corners']} corners; {res['eval_s']:.0f} s{slam_s})",
-                  "",
-                  f"| {name} | " + " | ".join(f"{c} m" if c != "all" else c for c in cols) + " |",
+                  "", f"| {name} | " + " | ".join(f"{c} m" if c != "all" else c for c in cols) + " |",
                   "| --- |" + " --- |" * len(cols),
                   "| network | " + " | ".join(_cell(res["network"][c]) for c in cols) + " |",
                   "| network IQR | " + " | ".join(_iqr(res["network"][c]) for c in cols) + " |"]

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from bench.results_common import BEGIN, BINS, COMMANDS_SHORTENED, END, RESULTS, ROOT, _load, _src, note_text
 from bench.depth_folds import FOLD_SCORE_TEXT, decision_line, fold_table
-from bench.results_pages import latency_block, live_vs_offline_block, own_rig_block, soak_block
+from bench.results_pages import latency_block, live_vs_offline_block, own_rig_block, rendered_v2_block, soak_block
 
 def corner_table(data: dict) -> str:
     lines = ["| sequence | " + " | ".join(f"{b} m" for b in BINS) + " | worst \\|log\\| |",
@@ -183,14 +183,12 @@ def build() -> tuple[str, str]:
                   f"over 3 frames and triangulated with the ground-truth motion; shipped model "
                   f"`{corners['model']['model_id']}`"
                   + (f"; {corners['name']}" if corners.get("name", "shipped default") != "shipped default" else "")
-                  + "):", "", corner_table(corners), "",
-                  _src("landmark_depth.json", corners), ""]
+                  + "):", "", corner_table(corners), "", _src("landmark_depth.json", corners), ""]
     if lidar:
         seen = "2011_09_26_drive_0013" in str(lidar.get("training_data", ""))
         parts += ["**Single image vs LiDAR, 2011_09_26_drive_0013** (median pred/true by range"
                   + ("; this drive is TRAINING data of the model measured, so this is not a held-out score"
-                     if seen else "") + "):", "",
-                  lidar_table(lidar), "", _src("depth_accuracy_0013.json", lidar), ""]
+                     if seen else "") + "):", "", lidar_table(lidar), "", _src("depth_accuracy_0013.json", lidar), ""]
     speed_text = speed_lines(dspeed, speeds)
     if speed_text:
         parts += ["**Speed**", "", speed_text, ""]
@@ -211,6 +209,7 @@ def build() -> tuple[str, str]:
                        ("accuracy_rendered_model.json", "the model for rendered worlds, as `metricslam demo` runs it")):
         if rendered := _load(name):
             page += [f"## The demo's rendered world with {what}", "", slam_table(rendered), "", _src(name, rendered), ""]
+    page += rendered_v2_block()
     if sel:
         page += ["## Depth v3 candidates (issue #16): the pre-registered rule and the SLAM check", "",
                  selection_table(sel), "", _src("depth_v3_selection_slam.json", sel),

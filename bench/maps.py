@@ -68,7 +68,7 @@ def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None, 
 
 
 #: rendered worlds run with the depth model for rendered worlds (the default is real streets only)
-RENDERED = ("--model", str(RENDERED_MODEL_PATH))
+RENDERED = str(RENDERED_MODEL_PATH)
 
 
 def run(seq: Path, out: Path, *flags: str) -> tuple[int, dict]:
@@ -121,15 +121,15 @@ def size_and_io(map_dir: Path, work: Path, repeats: int) -> dict:
             "load_s_median": statistics.median(load_s), "repeats": repeats}
 
 
-def rendered_revisit(work: Path) -> dict:
+def rendered_revisit(work: Path, model: str = RENDERED) -> dict:
     from metricslam.synth.scene import generate_sequence
 
     src = work / "loop300"
     if not (src / "poses" / "00.txt").is_file():
         generate_sequence(src, 300, seed=3, size=(620, 188), path="loop")
     s1, s2 = cut(src, work / "r1", 0, 150), cut(src, work / "r2", 190, 300)
-    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"), *RENDERED)
-    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"), *RENDERED)
+    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"), "--model", model)
+    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"), "--model", model)
     m = st2["map"]
     gt = read_kitti_poses(src / "poses" / "00.txt")
     entry = next(j for j in range(110) if np.min(np.linalg.norm(gt[:150, :3, 3] - gt[190 + j, :3, 3], axis=1)) < 10)
@@ -153,8 +153,8 @@ def rendered_revisit(work: Path) -> dict:
     other = work / "other150"
     if not (other / "poses" / "00.txt").is_file():
         generate_sequence(other, 150, seed=5, size=(620, 188), path="loop")
-    run(other, work / "o1.txt", "--save-map", str(work / "o_map"), *RENDERED)
-    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"), *RENDERED)
+    run(other, work / "o1.txt", "--save-map", str(work / "o_map"), "--model", model)
+    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"), "--model", model)
     out["foreign_map"] = {"exit_code": code_o, "relocalized": st_o["map"]["relocalized"],
                           "matches": st_o["map"]["relocalization_matches"]}
     return out
@@ -277,8 +277,7 @@ def render(r: dict, command: str, machine: str) -> str:
     io, rv, k = r["io"], r["rendered"], r["kitti06"]
     lines = ["# Saved maps: size, save/load time, relocalization", "",
              f"Command: `{command}`  ", f"Machine: {machine} (the load average says whether other jobs "
-             "shared the CPU while it ran).", "",
-             "## Size and I/O per 1,000 keyframes", "",
+             "shared the CPU while it ran).", "", "## Size and I/O per 1,000 keyframes", "",
              f"{io['keyframes']} keyframes ({io['bow_rows']} loop-database rows, {io['features']} features): "
              f"**{io['mb']:.1f} MB**, save **{io['save_s_median']:.2f} s**, load **{io['load_s_median']:.2f} s** "
              f"(median of {io['repeats']}; checksums included).", "",
@@ -308,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--out", default=None, help="results path stem (writes .json and .md)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--rendered-model", default=RENDERED, help="depth model of the rendered worlds (default: RENDERED_MODEL_PATH)")
     ap.add_argument("--data", default="../shared/data", help="the shared data folder (kitti_raw_stereo/)")
     ap.add_argument("--only", choices=("kitti_raw_0013", "live_0013"), default=None,
                     help="run only this part and merge it into the existing --out JSON")
@@ -324,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         result.pop("machine", None)
         earlier = result.pop("command", None)
     else:
-        result = {"rendered": rendered_revisit(work)}
+        result = {"rendered": rendered_revisit(work, args.rendered_model)}
         result["io"] = size_and_io(work / "r_map", work, args.repeats)
         result["kitti06"] = kitti06(work)
     if args.only != "live_0013":

@@ -73,8 +73,7 @@ def run_sequence(name: str, seq: str, gt: str, workdir: Path, horizon_s: float |
               "true_median_step_m": float(np.median(true_steps)),
               "live": jump_stats(T_live, true_steps, min_true_step_m),
               "continuous": jump_stats(T_cont, true_steps, min_true_step_m),
-              "continuous_minus_live_max_m": float(gap.max()),
-              "continuous_minus_live_last_m": float(gap[-1]),
+              "continuous_minus_live_max_m": float(gap.max()), "continuous_minus_live_last_m": float(gap[-1]),
               "continuous_stats": run_stats.get("continuous"),
               "corrections_applied": run_stats.get("corrections_applied")}
     result["continuous_max_over_true_max"] = result["continuous"]["max_step_m"] / result["true_max_step_m"]

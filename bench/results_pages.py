@@ -124,3 +124,20 @@ def latency_block() -> str:
             + " (two full SLAMs and the depth service need more than two cores).")
     return "\n".join([" ".join(lines), "", f"Source: `bench/results/zenoh_loop1500_10hz.json`, command: "
                       f"`{short_command(command)}`; machine: {machine}"]) + "\n"
+
+
+def rendered_v2_block() -> list[str]:
+    """Issue #34's rendered-world model v2 on ``docs/history/rule_rendered_v2.md``'s validation worlds."""
+    runs = {(m, w): _load(f"rendered_v2_val_{m}_{w}.json") for m in ("baseline", "candidate") for w in ("620", "1241")}
+    if not all(runs.values()):
+        return []
+    rows = ["| model | render width | mean scale ratio | mean \\|scale error\\| | failures |", "| --- | --- | --- | --- | --- |"]
+    for (m, w), d in runs.items():
+        r = [q["eval"]["metric"]["result"] for q in d["sequences"]]
+        ok = [x for x in r if x["ate_rmse_sim3_m"] <= 1.0]
+        rows.append(f"| {m} | {w} px | {statistics.mean(x['scale_ratio'] for x in ok):.3f} | "
+                    f"{statistics.mean(x['scale_error_pct'] for x in ok):.2f} % | {len(r) - len(ok)} of {len(r)} |")
+    return ["## The model for rendered worlds, v2 candidate (issue #34): not shipped", "",
+            "Rule committed before the candidate was trained, and its outcome: `docs/history/rule_rendered_v2.md`. "
+            "Validation worlds: seeds 41-52, loop, 150 frames; failure = ATE Sim(3) > 1 m (left out of the means).",
+            "", *rows, "", _src("rendered_v2_val_candidate_620.json", runs["candidate", "620"]), ""]

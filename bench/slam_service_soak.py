@@ -119,8 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{r['rss_mib_max']} | {r['peak_mib_above_warmup']} | {r['growth_mib_per_1000_frames_after_warmup']}; "
                     f"{r['growth_mib_per_1000_frames_second_half']} | {r['rollovers']} | "
                     f"{r['tracking']:.2f} | {r['wall_s']} |")
-    markdown = "\n".join([
-        "# SLAM service soak: RSS of one camera over a looped sequence", "",
+    markdown = "\n".join(["# SLAM service soak: RSS of one camera over a looped sequence", "",
         f"`{payload['command']}`", "", f"Machine before: {machine_before}", "",
         f"Machine after: {payload['machine_after']}", "", f"{args.frames} frames of {payload['sequence']}, "
         "ping-pong looped, back-pressured (2 in flight); RSS of the service process.", "", *rows, ""])

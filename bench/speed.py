@@ -125,8 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         print(mode, {k: v for k, v in r.items() if k != "stats"}, flush=True)
         report["runs"].append(r)
     report["machine"] = describe()
-    report["notes"] += [
-        "Load average (1/5/15 min) before: " + "/".join(f"{x:.1f}" for x in load_before)
+    report["notes"] += ["Load average (1/5/15 min) before: " + "/".join(f"{x:.1f}" for x in load_before)
         + "; after: see Machine. Wall-clock numbers depend on what else ran on the 2 shared "
         "cores; CPU s per frame is the steadier measure.",
         "ms per frame = stage time summed over the run / frames; ms per call = per invocation "

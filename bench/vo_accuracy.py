@@ -72,8 +72,7 @@ def to_markdown(rows: list[dict], command: str, host: str, notes: list[str]) -> 
            "decoding (listed separately).", "",
            "| sequence | BA | frames | path m | KFs | losses | ATE Sim3 m | ATE % dist | r_rel deg/100m | "
            "fps (wall) | CPU ms/frame | frontend ms | pose ms | keyframe ms | BA ms/solve | "
-           "marg ms/KF | decode ms |",
-           "|" + " --- |" * 17]
+           "marg ms/KF | decode ms |", "|" + " --- |" * 17]
     for r in rows:
         pf, pc = r["ms_per_frame"], r["ms_per_call"]
         out.append(

@@ -60,8 +60,7 @@ def trial(session, frames, camera_id: str, rate_hz: float, drain_s: float = 15.0
         "poses": len(lat), "queue_drops": status.queue_drops if status else None,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
-        "max_ms": float(lat.max()) if lat.size else None,
-        "service_fps": status.fps if status else None,
+        "max_ms": float(lat.max()) if lat.size else None, "service_fps": status.fps if status else None,
         # where the tail is: the 20 slowest frames (index, ms) and p99 per 100 frames
         "slowest_frames": [[int(ks[i]), round(float(lat[i]), 1)] for i in worst],
         "p99_ms_per_100_frames": [round(float(np.percentile(lat[j:j + 100], 99)), 1) for j in range(0, lat.size, 100)],
@@ -106,8 +105,7 @@ def _fmt(x, f="{:.1f}"):
 
 
 def write_markdown(path: Path, results: list[dict], args: argparse.Namespace, n_frames: int, shape) -> None:
-    lines = [
-        "# SLAM service over Zenoh: latency, sustained rate, two cameras", "",
+    lines = ["# SLAM service over Zenoh: latency, sustained rate, two cameras", "",
         f"Command: `{command_line('bench.zenoh_latency')}`  ",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
