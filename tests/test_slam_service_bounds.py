@@ -6,6 +6,7 @@ mid-stream that continues from its state directory.
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -291,3 +292,23 @@ def test_a_batch_re_solve_of_the_global_graph_trims_the_heap_at_once(stack, monk
         bus.emit(Solved(11, 11, 13, 0, 80.0, batch=True))
         assert len(calls) == expected, (period, calls)
         svc.stop()
+
+
+class AliasedSession(MovingSession):
+    """:class:`MovingSession` whose VO reports frames 3-5 and 9 as suspect (tracks possibly aliased)."""
+
+    def process(self, frame):
+        pose = super().process(frame)
+        return dataclasses.replace(pose, vo_suspect=frame.index in (3, 4, 5, 9))
+
+
+def test_suspect_vo_frames_give_one_status_event_per_run(stack) -> None:
+    _, client, start_service = stack
+    start_service(lambda cid, cam: AliasedSession())
+    recorder = PoseRecorder(client, "cam0")
+    _publish(client, "cam0", range(12))
+    assert recorder.wait_frames(12, 10)
+    assert recorder.wait_for(lambda r: _events(r).count("vo_suspect") == 2, 5), _events(recorder)
+    details = [s.event_detail for s in recorder.statuses if s.event == "vo_suspect"]
+    assert details[0].startswith("frame 3:") and details[1].startswith("frame 9:"), details
+    assert "aliased" in details[0]

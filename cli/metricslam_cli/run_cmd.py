@@ -33,6 +33,9 @@ a pose (:func:`pose_gap_stats`), plus the scale estimate over time
   (metres per keyframe VO unit); ``step_vo`` (VO distance from the previous keyframe, keyframe
   VO units; for a ground-truth reference). World units are metres in metric mode, and the
   first keyframe's VO units with ``--no-scale`` / ``--vo-only`` (the VO's arbitrary scale).
+* ``vo_suspect_frames`` / ``vo_suspect_ranges`` — frames whose VO tracks may be aliased on
+  repeating texture, and their ``[first, last]`` ranges (``metricslam.slam.vo.aliasing``; a
+  warning line names them).
 * ``scale_corrections`` — one dict per applied warp: ``frame_index``, ``t_ns``, its scale ``s``
   and ``scale_live`` after it.
 * ``scale_states`` — how many frames' poses were ``unscaled`` / ``provisional`` / ``metric`` when
@@ -176,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.datasets.frame_reader import FrameReader
     from metricslam.errors import ConfigError, ScaleError
     from metricslam.ros2.session_log import SessionRecorder
+    from metricslam.slam.vo.aliasing import describe_ranges
     from metricslam.slam.depth_source import OnnxDepthSource
     from metricslam.slam.session_builder import build_session, preset_for
     from metricslam.trajectory.io import write_kitti_poses, write_tum
@@ -269,6 +273,10 @@ def run(args: argparse.Namespace) -> int:
     if stats["frames_unreadable"] or stats["interpolated"] or stats["pose_invalid"]:
         print(f"{stats['frames_unreadable']} unreadable frames, {stats['interpolated']} poses "
               f"interpolated, {stats['pose_invalid']} frames without a pose (frame lists in --json)")
+    if stats["vo_suspect_frames"]:
+        print(f"warning: {stats['vo_suspect_frames']} frames whose VO tracks may be aliased on repeating texture "
+              f"(frames {describe_ranges(stats['vo_suspect_ranges'])}): the trajectory's shape may be wrong from "
+              "there (docs/vo.md, 'Suspect frames')")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -60,6 +60,8 @@ class PoseEstimate:
         interpolated: the frame had no pose of its own (invalid input, tracking loss, a given-up
             initialization) and ``T_world_cam`` was interpolated at ``t_ns`` between the nearest
             frames before and after it that have one (only :meth:`SlamSession.trajectory` sets it).
+        vo_suspect: the VO's tracks on this frame (and the one before) may be aliased on repeating
+            texture, its pose may be wrong (:mod:`metricslam.slam.vo.aliasing`).
         pose_valid: False when the frame has no pose of its own and none could be interpolated
             (no such frame on one side, or the two sides in unrelated world frames);
             ``T_world_cam`` is then a placeholder (:meth:`SlamPipeline.trajectory` says which).
@@ -76,6 +78,7 @@ class PoseEstimate:
     pose_valid: bool = True
     scale_state: ScaleState = ScaleState.UNSCALED
     scale_factors: int = 0
+    vo_suspect: bool = False
 
 
 @dataclass(frozen=True)

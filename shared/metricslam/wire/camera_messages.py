@@ -142,7 +142,9 @@ class StatusMessage(Message):
     ``event`` / ``event_detail``: set on one-off statuses about the camera's session
     (refused, closed, restarted or rolled over; docs/deployment.md "Bounds and state"), or its
     saved map (``relocalized``: poses are in the map frame from now on; ``map_refused``: the
-    service's map does not fit this camera, which runs without it; docs/maps.md).
+    service's map does not fit this camera, which runs without it; docs/maps.md), or its VO
+    (``vo_suspect``: once per run of frames whose tracks may be aliased on repeating texture, so
+    the poses from there may be wrong; docs/vo.md "Suspect frames").
     ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
     """
 
@@ -167,7 +169,7 @@ class StatusMessage(Message):
     scale_state: ScaleState | None = None
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
     event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over",
-                   "relocalized", "map_refused"] | None = None
+                   "relocalized", "map_refused", "vo_suspect"] | None = None
     event_detail: str | None = Field(default=None, max_length=1000)
     scale_health: ScaleHealthStatus | None = None
 

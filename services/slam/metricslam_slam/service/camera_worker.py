@@ -104,6 +104,7 @@ class CameraWorker:
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=500)
         self._done_times: collections.deque[float] = collections.deque(maxlen=50)
         self._last_T = np.eye(4)
+        self._vo_suspect = False  # the latest pose's VO tracks may be aliased (one event per run)
         self._frame_id = "world"  # of the last published pose ("map": relocalized into the service's map)
         self._odometry = OdometryStream(camera_id, publish)  # ".../odom", beside ".../pose"
         self._thread = threading.Thread(target=self._run, name=f"slam-{camera_id}", daemon=True)
@@ -201,6 +202,10 @@ class CameraWorker:
                 log.exception("camera %s: session.process raised", self.camera_id)
                 est = PoseEstimate(msg.frame_index, msg.t_ns, self._last_T, TrackingState.INVALID_FRAME)
         self._last_T = est.T_world_cam
+        if est.vo_suspect and not self._vo_suspect:  # a run of suspect frames starts
+            self._event("vo_suspect", f"frame {est.frame_index}: the VO's tracks may be aliased on repeating "
+                        "texture; its poses from here may be wrong (docs/vo.md, 'Suspect frames')")
+        self._vo_suspect = est.vo_suspect
         latency_ms = (time.perf_counter_ns() - t_in_ns) / 1e6
         frame_id = self.frame_id
         if frame_id != self._frame_id:  # relocalized into the map: the continuous stream starts over there

@@ -34,6 +34,10 @@ class VOConfig(BaseModel):
         "at the original corner, so coarse levels only cost time")
     fb_max_error_px: float = Field(1.0, gt=0, description="forward-backward LK error threshold")
     ransac_threshold_px: float = Field(1.0, gt=0, description="essential-matrix RANSAC threshold")
+    suspect_reject_share: float = Field(
+        0.22, gt=0, le=1, description="a tracked frame whose essential check rejects more than this "
+        "share of its tracks, as it did on the frame before, is reported suspect (tracks possibly "
+        "aliased on repeating texture; metricslam.slam.vo.aliasing)")
     border_px: float = Field(8.0, ge=0, description="corners closer to the border are dropped")
     min_texture_std: float = Field(2.0, ge=0, description="image std below this is 'blank'")
 

@@ -88,7 +88,7 @@ class KLTFrontend:
         self._prev_pyr = pyr
         return self.tracks
 
-    def reject_by_essential(self, ids_ref: np.ndarray, uv_ref_px: np.ndarray) -> np.ndarray:
+    def reject_by_essential(self, ids_ref: np.ndarray, uv_ref_px: np.ndarray) -> tuple[np.ndarray, int]:
         """Drop tracks that violate the epipolar geometry w.r.t. reference pixels.
 
         Args:
@@ -96,24 +96,26 @@ class KLTFrontend:
                 keyframe). Tracks without a reference pixel are kept.
 
         Returns:
-            (K,) ids that were rejected.
+            (K,) ids that were rejected, and how many tracks were checked (0: too few common
+            tracks or too little motion to check).
         """
         common, i_cur, i_ref = np.intersect1d(self.ids, ids_ref, return_indices=True)
+        none = np.zeros(0, dtype=np.int64)
         if len(common) < 8:
-            return np.zeros(0, dtype=np.int64)
+            return none, 0
         a = self.camera.normalized(uv_ref_px[i_ref])
         b = self.camera.normalized(self.uv_px[i_cur])
         motion_px = np.median(np.linalg.norm(uv_ref_px[i_ref] - self.uv_px[i_cur], axis=1))
         if motion_px < 2.0:  # no baseline: E is undetermined, nothing to check against
-            return np.zeros(0, dtype=np.int64)
+            return none, 0
         thr = self.config.ransac_threshold_px / self.camera.fx_px
         E, mask = cv2.findEssentialMat(a, b, np.eye(3), method=cv2.RANSAC, prob=0.999,
                                        threshold=thr)
         if E is None or mask is None:
-            return np.zeros(0, dtype=np.int64)
+            return none, 0
         bad = common[mask.ravel() == 0]
         self.drop(bad)
-        return bad
+        return bad, len(common)
 
     def drop(self, ids: np.ndarray) -> None:
         """Stop tracking the given ids."""

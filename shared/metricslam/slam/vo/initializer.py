@@ -35,6 +35,19 @@ class InitResult:
     parallax_deg: float
 
 
+@dataclass
+class InitRef:
+    """The reference frame a two-view initialization waits on (``LocalVO`` keeps one)."""
+
+    frame_index: int
+    t_ns: int
+    image: np.ndarray
+    ids: np.ndarray
+    uv_px: np.ndarray
+    T_world_ref: np.ndarray
+    pending: list  # (frame_index, t_ns) of frames processed since the reference
+
+
 def try_initialize(config: VOConfig, camera: PinholeCamera, ids_ref: np.ndarray,
                    uv_ref_px: np.ndarray, ids_cur: np.ndarray, uv_cur_px: np.ndarray) -> InitResult | None:
     """Attempt initialization between a reference frame and the current frame; None = not yet."""

@@ -30,8 +30,9 @@ from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
 from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.coasting import MotionMemory
 from metricslam.slam.vo.config import VOConfig
+from metricslam.slam.vo.aliasing import SuspectFrames
 from metricslam.slam.vo.frontend import KLTFrontend
-from metricslam.slam.vo.initializer import InitResult, try_initialize
+from metricslam.slam.vo.initializer import InitRef, InitResult, try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
 from metricslam.slam.vo.motion_only import estimate_pose, relocalize_pnp
 from metricslam.slam.vo.frame_check import limit_blas_threads, usable_gray
@@ -47,17 +48,6 @@ class Anchor:
     frame_index: int
     kf_frame_index: int
     T_kf_cam: np.ndarray
-
-
-@dataclass
-class _InitRef:
-    frame_index: int
-    t_ns: int
-    image: np.ndarray
-    ids: np.ndarray
-    uv_px: np.ndarray
-    T_world_ref: np.ndarray
-    pending: list  # (frame_index, t_ns) of frames processed since the reference
 
 
 class LocalVO:
@@ -79,11 +69,12 @@ class LocalVO:
         self.counters = {"frames": 0, "keyframes": 0, "tracking_losses": 0, "invalid_frames": 0,
                          "marginalized": 0, "ba_solves": 0}
         self.frontend = KLTFrontend(config, camera)
+        self.suspect = SuspectFrames(config.suspect_reject_share)  # frames whose tracks may be aliased
         self.window = SlidingWindow(config, camera, self.counters, self.timings_ms)
         self._lock = self.window.lock  # one lock for the window and the motion state
         self._segment = 0
         self._tracking = False
-        self._ref: _InitRef | None = None
+        self._ref: InitRef | None = None
         self._T_world_last = np.eye(4)
         self._T_last_cur = np.eye(4)  # constant-velocity model
         self._last_kf: Keyframe | None = None
@@ -188,14 +179,15 @@ class LocalVO:
         return None if np.allclose(C, np.eye(4), atol=1e-15) else C
 
     # ------------------------------------------------------------------ frames
-    def _estimate(self, frame: Frame, state: TrackingState, is_kf: bool = False) -> PoseEstimate:
+    def _estimate(self, frame: Frame, state: TrackingState, is_kf: bool = False, suspect: bool = False) -> PoseEstimate:
         return PoseEstimate(frame_index=frame.index, t_ns=int(frame.t_ns),
                             T_world_cam=self._T_world_last.copy(), state=state,
-                            is_keyframe=is_kf, segment_id=self._segment)
+                            is_keyframe=is_kf, segment_id=self._segment, vo_suspect=suspect)
 
     def _lose(self, frame: Frame) -> PoseEstimate:
         """Tracking loss: marginalize the window; a new segment starts where the camera went (:mod:`.coasting`)."""
         self.counters["tracking_losses"] += 1
+        self.suspect.interrupt()
         self._motion.lost(self._T_last_cur)  # before the motion model resets below
         try:
             self.flush()
@@ -229,7 +221,7 @@ class LocalVO:
         self.frontend.track(gray)
         self.frontend.detect(gray)
         tr = self.frontend.tracks
-        self._ref = _InitRef(frame.index, int(frame.t_ns), gray, tr.ids, tr.uv_px,
+        self._ref = InitRef(frame.index, int(frame.t_ns), gray, tr.ids, tr.uv_px,
                              self._motion.pose_at(self._T_world_last, int(frame.t_ns)), [])
 
     def _process_init(self, frame: Frame, gray: np.ndarray) -> PoseEstimate:
@@ -320,7 +312,8 @@ class LocalVO:
         with self._lock:  # tracks whose landmark left with a marginalized keyframe
             orphan = [i for i in self.frontend.ids.tolist() if i not in self.map.landmarks]
         self.frontend.drop(np.array(orphan, dtype=np.int64))
-        self.frontend.reject_by_essential(self._kf_track_ids, self._kf_track_uv)
+        bad, n_checked = self.frontend.reject_by_essential(self._kf_track_ids, self._kf_track_uv)
+        suspect = self.suspect.update(frame.index, len(bad) / n_checked if n_checked else 0.0)
         tracks = self.frontend.tracks
         t1 = time.perf_counter()
         with self._lock:
@@ -358,7 +351,7 @@ class LocalVO:
             kf = self._last_kf
             self._anchors.append(Anchor(frame.index, kf.frame_index,
                                         se3.inverse(kf.T_world_kf) @ T_world_cam))
-        return self._estimate(frame, TrackingState.TRACKING, is_kf=is_kf)
+        return self._estimate(frame, TrackingState.TRACKING, is_kf=is_kf, suspect=suspect)
 
     def _need_keyframe(self) -> bool:
         """Paper's rule: mean pixel motion since the last keyframe; plus low track survival."""
