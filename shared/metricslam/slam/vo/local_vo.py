@@ -27,10 +27,10 @@ from metricslam.datasets.base import Frame
 from metricslam.geometry import se3, sim3, so3
 from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
+from metricslam.slam.vo.aliasing import SuspectFrames
 from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.coasting import MotionMemory
 from metricslam.slam.vo.config import VOConfig
-from metricslam.slam.vo.aliasing import SuspectFrames
 from metricslam.slam.vo.frontend import KLTFrontend
 from metricslam.slam.vo.initializer import InitRef, InitResult, try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
@@ -179,7 +179,8 @@ class LocalVO:
         return None if np.allclose(C, np.eye(4), atol=1e-15) else C
 
     # ------------------------------------------------------------------ frames
-    def _estimate(self, frame: Frame, state: TrackingState, is_kf: bool = False, suspect: bool = False) -> PoseEstimate:
+    def _estimate(self, frame: Frame, state: TrackingState, is_kf: bool = False,
+                  suspect: bool = False) -> PoseEstimate:
         return PoseEstimate(frame_index=frame.index, t_ns=int(frame.t_ns),
                             T_world_cam=self._T_world_last.copy(), state=state,
                             is_keyframe=is_kf, segment_id=self._segment, vo_suspect=suspect)
@@ -222,7 +223,7 @@ class LocalVO:
         self.frontend.detect(gray)
         tr = self.frontend.tracks
         self._ref = InitRef(frame.index, int(frame.t_ns), gray, tr.ids, tr.uv_px,
-                             self._motion.pose_at(self._T_world_last, int(frame.t_ns)), [])
+                            self._motion.pose_at(self._T_world_last, int(frame.t_ns)), [])
 
     def _process_init(self, frame: Frame, gray: np.ndarray) -> PoseEstimate:
         t0 = time.perf_counter()
