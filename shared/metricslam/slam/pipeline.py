@@ -187,6 +187,7 @@ class SlamPipeline:
         out = {"frames": c["frames"], "keyframes": c["keyframes"],
                "tracking_losses": c["tracking_losses"], "invalid_frames": c["invalid_frames"],
                "marginalized_keyframes": c["marginalized"], "ba_solves": c["ba_solves"],
+               "retracks": c["retracks"], "retracks_kept": c["retracks_kept"],
                "vo_suspect_frames": self.vo.suspect.count,
                "vo_suspect_ranges": [list(r) for r in self.vo.suspect.ranges],
                "corrections_applied": self._corrections,

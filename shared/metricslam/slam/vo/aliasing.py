@@ -6,10 +6,17 @@ forward-backward check nor the essential-matrix RANSAC can tell, and the pose fo
 several frames. What shows is the share of a frame's tracks the essential check rejects (the
 wrong tracks and the right ones disagree). A tracked frame is *suspect* when that share is above
 ``VOConfig.suspect_reject_share`` on it and on the tracked frame before it
-(``docs/history/rule_vo_aliasing_report_session21.md``). Reporting only: no estimate changes.
+(``docs/history/rule_vo_aliasing_report_session21.md``).
+
+Before that, a frame whose share is above ``VOConfig.retrack_reject_share`` is tracked again from
+the global image shift instead of the motion guess (:func:`retrack`), and that set is kept only
+when it is decisively more consistent (``docs/history/rule_vo_retrack2_session21.md``); the
+report reads the kept set's share.
 """
 
 from __future__ import annotations
+
+from typing import Callable
 
 
 class SuspectFrames:
@@ -48,3 +55,20 @@ class SuspectFrames:
 def describe_ranges(ranges: list[list[int]]) -> str:
     """``"108-117, 130"``: :attr:`SuspectFrames.ranges` (or ``vo_suspect_ranges``) for messages."""
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in ranges)
+
+
+def retrack(frontend, gray, rejected_share: float, check: Callable[[], float], counters: dict) -> float:
+    """Track the frame ``gray`` again (:meth:`KLTFrontend.retrack`) after ``check`` (drop tracks
+    without a landmark and the essential check's rejects; returns the rejected share) rejected
+    ``rejected_share`` of the first set. The new set is kept when ``check`` rejects less than half
+    that share of it and at least as many tracks survive; else the first set is restored.
+    Counts ``retracks`` and ``retracks_kept`` in ``counters``; returns the kept set's share."""
+    first = frontend.tracks
+    counters["retracks"] += 1
+    frontend.retrack(gray)
+    share = check()
+    if share < rejected_share / 2 and len(frontend.ids) >= len(first):
+        counters["retracks_kept"] += 1
+        return share
+    frontend.restore(first)
+    return rejected_share

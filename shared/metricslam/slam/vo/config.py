@@ -34,6 +34,10 @@ class VOConfig(BaseModel):
         "at the original corner, so coarse levels only cost time")
     fb_max_error_px: float = Field(1.0, gt=0, description="forward-backward LK error threshold")
     ransac_threshold_px: float = Field(1.0, gt=0, description="essential-matrix RANSAC threshold")
+    retrack_reject_share: float = Field(
+        0.22, gt=0, le=1, description="a frame whose essential check rejects more than this share of "
+        "its tracks is tracked again from the global image shift; kept if that halves the share "
+        "(metricslam.slam.vo.aliasing.retrack)")
     suspect_reject_share: float = Field(
         0.22, gt=0, le=1, description="a tracked frame whose essential check rejects more than this "
         "share of its tracks, as it did on the frame before, is reported suspect (tracks possibly "

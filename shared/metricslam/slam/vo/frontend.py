@@ -38,6 +38,7 @@ class KLTFrontend:
         self._prev_pyr: np.ndarray | None = None
         self.ids = np.zeros(0, dtype=np.int64)
         self.uv_px = np.zeros((0, 2))
+        self._before: tuple | None = None  # (prev image, ids, uv_px) of the last track(), for retrack()
         self._win = (config.klt_window_px, config.klt_window_px)
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.klt_max_iterations,
                           0.03)
@@ -60,9 +61,11 @@ class KLTFrontend:
                 guess), e.g. from the motion model; large motions of near points need it.
         """
         pyr = gray  # OpenCV 5's Python binding takes images, not prebuilt pyramids
+        self._before = None
         if self._prev_pyr is None or len(self.ids) == 0:
             self._prev_pyr = pyr
             return self.tracks
+        self._before = (self._prev_pyr, self.ids, self.uv_px)
         p0 = self.uv_px.astype(np.float32).reshape(-1, 1, 2)
         lv = self.config.klt_levels
         if uv_guess_px is not None and len(uv_guess_px) == len(p0):
@@ -87,6 +90,24 @@ class KLTFrontend:
         self.ids, self.uv_px = self.ids[ok], p1[ok]
         self._prev_pyr = pyr
         return self.tracks
+
+    def retrack(self, gray: np.ndarray) -> Tracks | None:
+        """Track the last :meth:`track` call's corners into ``gray`` again, each started at its
+        previous pixel moved by the global image shift (phase correlation at 1/4 resolution)
+        instead of the motion guess; the tracks that call produced are replaced. None when that
+        call tracked nothing (:mod:`~metricslam.slam.vo.aliasing`)."""
+        if self._before is None:
+            return None
+        prev, ids, uv_px = self._before
+        h, w = gray.shape
+        small = [cv2.resize(g, (w // 4, h // 4), interpolation=cv2.INTER_AREA).astype(np.float32) for g in (prev, gray)]
+        (dx, dy), _ = cv2.phaseCorrelate(*small)
+        self._prev_pyr, self.ids, self.uv_px = prev, ids, uv_px
+        return self.track(gray, uv_px + 4.0 * np.array([dx, dy]))
+
+    def restore(self, tracks: Tracks) -> None:
+        """Make ``tracks`` (a :attr:`tracks` snapshot of this frame) the current tracks again."""
+        self.ids, self.uv_px = tracks.ids.copy(), tracks.uv_px.copy()
 
     def reject_by_essential(self, ids_ref: np.ndarray, uv_ref_px: np.ndarray) -> tuple[np.ndarray, int]:
         """Drop tracks that violate the epipolar geometry w.r.t. reference pixels.

@@ -27,7 +27,7 @@ from metricslam.datasets.base import Frame
 from metricslam.geometry import se3, sim3, so3
 from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
-from metricslam.slam.vo.aliasing import SuspectFrames
+from metricslam.slam.vo.aliasing import SuspectFrames, retrack
 from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.coasting import MotionMemory
 from metricslam.slam.vo.config import VOConfig
@@ -67,7 +67,7 @@ class LocalVO:
         self.consumer = consumer
         self.timings_ms: dict[str, TimingSummary] = defaultdict(TimingSummary)  # constant memory
         self.counters = {"frames": 0, "keyframes": 0, "tracking_losses": 0, "invalid_frames": 0,
-                         "marginalized": 0, "ba_solves": 0}
+                         "marginalized": 0, "ba_solves": 0, "retracks": 0, "retracks_kept": 0}
         self.frontend = KLTFrontend(config, camera)
         self.suspect = SuspectFrames(config.suspect_reject_share)  # frames whose tracks may be aliased
         self.window = SlidingWindow(config, camera, self.counters, self.timings_ms)
@@ -310,11 +310,10 @@ class LocalVO:
             T_by_kf = self.window.poses_by_kf()
             guess = self.map.predict_pixels(self.frontend.ids, T_by_kf, T_pred)
         self.frontend.track(gray, guess)
-        with self._lock:  # tracks whose landmark left with a marginalized keyframe
-            orphan = [i for i in self.frontend.ids.tolist() if i not in self.map.landmarks]
-        self.frontend.drop(np.array(orphan, dtype=np.int64))
-        bad, n_checked = self.frontend.reject_by_essential(self._kf_track_ids, self._kf_track_uv)
-        suspect = self.suspect.update(frame.index, len(bad) / n_checked if n_checked else 0.0)
+        share = self._check_tracks()
+        if share > cfg.retrack_reject_share and guess is not None:  # tracks may be aliased
+            share = retrack(self.frontend, gray, share, self._check_tracks, self.counters)
+        suspect = self.suspect.update(frame.index, share)
         tracks = self.frontend.tracks
         t1 = time.perf_counter()
         with self._lock:
@@ -353,6 +352,14 @@ class LocalVO:
             self._anchors.append(Anchor(frame.index, kf.frame_index,
                                         se3.inverse(kf.T_world_kf) @ T_world_cam))
         return self._estimate(frame, TrackingState.TRACKING, is_kf=is_kf, suspect=suspect)
+
+    def _check_tracks(self) -> float:
+        """Drop tracks without a landmark and those the essential check rejects; the share rejected."""
+        with self._lock:  # tracks whose landmark left with a marginalized keyframe
+            orphan = [i for i in self.frontend.ids.tolist() if i not in self.map.landmarks]
+        self.frontend.drop(np.array(orphan, dtype=np.int64))
+        bad, n_checked = self.frontend.reject_by_essential(self._kf_track_ids, self._kf_track_uv)
+        return len(bad) / n_checked if n_checked else 0.0
 
     def _need_keyframe(self) -> bool:
         """Paper's rule: mean pixel motion since the last keyframe; plus low track survival."""
