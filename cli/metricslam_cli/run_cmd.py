@@ -276,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
     if stats["vo_suspect_frames"]:
         print(f"warning: {stats['vo_suspect_frames']} frames whose VO tracks may be aliased on repeating texture "
               f"(frames {describe_ranges(stats['vo_suspect_ranges'])}): the trajectory's shape may be wrong from "
-              "there (docs/vo.md, 'Suspect frames')")
+              "there (docs/vo.md, 'Aliased tracks')")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,11 +1,15 @@
-import json, statistics, glob, os
-V = "/tmp/s21/vv"
+"""Score a re-track validation: python score.py [RUNS_DIR] [FIRST_SEED] (20 seeds from FIRST_SEED,
+both sizes; RUNS_DIR holds base_*/cand_* runs and evals). Session 21: /tmp/s21/vv 60 (first form),
+/tmp/s21/vv2 100 (second form, docs/history/vo_retrack2_session21/)."""
+import json, statistics, glob, os, sys
+V = sys.argv[1] if len(sys.argv) > 1 else "/tmp/s21/vv"
+FIRST = int(sys.argv[2]) if len(sys.argv) > 2 else 60
 def ev(v, n):
     p = f"{V}/{v}_{n}.eval.json"
     return json.load(open(p)) if os.path.exists(p) else None
 rows = []
 for sz in ("620x188", "1241x376"):
-    for s in range(60, 80):
+    for s in range(FIRST, FIRST + 20):
         n = f"loop_s{s}_{sz}"; b, c = ev("base", n), ev("cand", n)
         if b is None or c is None: continue
         st = json.load(open(f"{V}/cand_{n}.json"))

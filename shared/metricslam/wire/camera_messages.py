@@ -144,7 +144,7 @@ class StatusMessage(Message):
     saved map (``relocalized``: poses are in the map frame from now on; ``map_refused``: the
     service's map does not fit this camera, which runs without it; docs/maps.md), or its VO
     (``vo_suspect``: once per run of frames whose tracks may be aliased on repeating texture, so
-    the poses from there may be wrong; docs/vo.md "Suspect frames").
+    the poses from there may be wrong; docs/vo.md "Aliased tracks").
     ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
     """
 

@@ -204,7 +204,7 @@ class CameraWorker:
         self._last_T = est.T_world_cam
         if est.vo_suspect and not self._vo_suspect:  # a run of suspect frames starts
             self._event("vo_suspect", f"frame {est.frame_index}: the VO's tracks may be aliased on repeating "
-                        "texture; its poses from here may be wrong (docs/vo.md, 'Suspect frames')")
+                        "texture; its poses from here may be wrong (docs/vo.md, 'Aliased tracks')")
         self._vo_suspect = est.vo_suspect
         latency_ms = (time.perf_counter_ns() - t_in_ns) / 1e6
         frame_id = self.frame_id
