@@ -16,7 +16,12 @@ report reads the kept set's share.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from metricslam.slam.vo.frontend import KLTFrontend
 
 
 class SuspectFrames:
@@ -57,8 +62,9 @@ def describe_ranges(ranges: list[list[int]]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in ranges)
 
 
-def retrack(frontend, gray, rejected_share: float, check: Callable[[], float], counters: dict) -> float:
-    """Track the frame ``gray`` again (:meth:`KLTFrontend.retrack`) after ``check`` (drop tracks
+def retrack(frontend: KLTFrontend, gray: np.ndarray, rejected_share: float, check: Callable[[], float],
+            counters: dict[str, int]) -> float:
+    """Track the frame ``gray`` ((H, W) uint8) again (:meth:`KLTFrontend.retrack`) after ``check`` (drop tracks
     without a landmark and the essential check's rejects; returns the rejected share) rejected
     ``rejected_share`` of the first set. The new set is kept when ``check`` rejects less than half
     that share of it and at least as many tracks survive; else the first set is restored.
