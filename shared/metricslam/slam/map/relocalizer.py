@@ -70,10 +70,6 @@ MIN_AGREEING_MATCHES = 2
 #: the session is relocalized; each asks the depth source for the keyframe (waiting at most this
 #: long, on the tracking thread)
 EARLY_MATCHES, EARLY_DEPTH_TIMEOUT_S = 6, 1.0
-#: once the agreeing matches place the session's keyframes this far apart in the map (metres,
-#: largest distance from their centroid), ``S_map_world``'s scale and translation are fitted to
-#: where they place them (the map's metres over the session's path) instead of taken per match
-SPAN_SCALE_MIN_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -319,12 +315,9 @@ class Relocalizer:
 
         support = [sum(agree(a, b) for b in cands) for a in cands]
         medoid = cands[int(np.argmax(support))]
-        kept = [c for c in cands if agree(medoid, c)]
-        mean = np.mean([sim3.local(medoid[0], c[0]) for c in kept], axis=0)
-        S = sim3.retract(medoid[0], mean)
-        if self._metric_map:
-            S = span_scaled(S, kept)
-        return S, len(kept), len(self.matches) - len(kept)
+        kept = [c[0] for c in cands if agree(medoid, c)]
+        mean = np.mean([sim3.local(medoid[0], c) for c in kept], axis=0)
+        return sim3.retract(medoid[0], mean), len(kept), len(self.matches) - len(kept)
 
     def agreeing(self, S_map_world: np.ndarray, S_world_kf_by_frame: dict[int, np.ndarray],
                  metric_world: bool) -> list[RelocMatch]:
@@ -359,26 +352,6 @@ class Relocalizer:
                 out.append((m, T @ self.measured_S_mapkf_kf(m, S_world_kf, metric_world) @ sim3.inverse(S_world_kf),
                             S_world_kf))
         return out
-
-
-def span_scaled(S_map_world: np.ndarray, kept: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """``S_map_world`` (4, 4) with its scale and translation fitted, its rotation kept, to where the
-    matches ``kept`` (``(S_map_world of the match, session keyframe position (3,) world units)``)
-    place their keyframes in the map, when those span :data:`SPAN_SCALE_MIN_M` or more; else
-    unchanged. The rotation is each match's PnP's (precise); a fitted one would be unobservable
-    about the direction of travel on a straight street."""
-    if len(kept) < 3:
-        return S_map_world
-    R, _, _ = sim3.split(S_map_world)
-    p_world = np.array([c[1] for c in kept])
-    p_map = np.array([sim3.transform_points(c[0], c[1][None])[0] for c in kept])
-    if np.linalg.norm(p_map - p_map.mean(axis=0), axis=1).max() < SPAN_SCALE_MIN_M:
-        return S_map_world
-    a, b = (p_world - p_world.mean(axis=0)) @ R.T, p_map - p_map.mean(axis=0)
-    s = float(np.sum(a * b) / np.sum(a * a))
-    if not (np.isfinite(s) and s > 0):
-        return S_map_world
-    return sim3.from_rts(R, p_map.mean(axis=0) - s * R @ p_world.mean(axis=0), s)
 
 
 def close(a: np.ndarray, b: np.ndarray, gate_m: float = GATE_M, gate_rad: float = GATE_RAD,
