@@ -9,7 +9,9 @@ latency and map-frame accuracy on a rendered revisit and on KITTI odometry 06.
   outside the map). The frame it relocalized at vs. the first within 10 m of the mapped path; map-frame
   RMSE against the truth rigidly aligned to session 1 on the revisited stretch, session 1's own RMSE
   there, each session's shape (``_sim3``: Sim(3)-aligned) and scale (truth per estimate); the scale of
-  ``S_map_world``; a map of another world (seed 5) must not relocalize.
+  ``S_map_world``; a map of another world (seed 5) must not relocalize. Run twice: learned scale
+  (default), and learned + road-height scale (``--scale-sources learned,ground --mount-height 1.65``,
+  the renderer's camera height; docs/ground_scale.md), a vehicle's configuration.
 * **KITTI raw 0013** (issue #34's real target, :func:`kitti_raw_0013`): sessions 0-99 / 40-143,
   overlap error against session 1 and ATE against the GPS/INS truth, a map of raw 0001 that
   must not relocalize it (``--data``: the shared data folder).
@@ -71,10 +73,12 @@ def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None, 
 RENDERED = str(RENDERED_MODEL_PATH)
 
 
-def run(seq: Path, out: Path, *flags: str) -> tuple[int, dict]:
-    code = cli(["run", str(seq), "--out", str(out), "--json", str(out.with_suffix(".json")),
-                "--deterministic", "--no-progress", *flags])
-    return code, json.loads(out.with_suffix(".json").read_text())
+def run(seq: Path, out: Path, *flags: str) -> tuple[int, dict | None]:
+    """``metricslam run``'s exit code and ``--json`` (None: it refused before writing one)."""
+    js = out.with_suffix(".json")
+    js.unlink(missing_ok=True)
+    code = cli(["run", str(seq), "--out", str(out), "--json", str(js), "--deterministic", "--no-progress", *flags])
+    return code, json.loads(js.read_text()) if js.is_file() else None
 
 
 def tiled(saved: SavedMap, n_kf: int) -> SavedMap:
@@ -121,19 +125,24 @@ def size_and_io(map_dir: Path, work: Path, repeats: int) -> dict:
             "load_s_median": statistics.median(load_s), "repeats": repeats}
 
 
-def rendered_revisit(work: Path, model: str = RENDERED) -> dict:
+#: the rendered revisit's second configuration: the road-height scale beside the learned one
+GROUND = ("--scale-sources", "learned,ground", "--mount-height", "1.65")
+
+
+def rendered_revisit(work: Path, model: str = RENDERED, flags: tuple[str, ...] = (), tag: str = "") -> dict:
     from metricslam.synth.scene import generate_sequence
 
-    src = work / "loop300"
+    src, w = work / "loop300", work / f"r{tag}"  # the worlds are shared, each run's files in ``w``
     if not (src / "poses" / "00.txt").is_file():
         generate_sequence(src, 300, seed=3, size=(620, 188), path="loop")
-    s1, s2 = cut(src, work / "r1", 0, 150), cut(src, work / "r2", 190, 300)
-    _, st1 = run(s1, work / "r1.txt", "--save-map", str(work / "r_map"), "--model", model)
-    code, st2 = run(s2, work / "r2.txt", "--map", str(work / "r_map"), "--model", model)
+    flags = ("--model", model, *flags)
+    s1, s2 = cut(src, w / "r1", 0, 150), cut(src, w / "r2", 190, 300)
+    _, st1 = run(s1, w / "r1.txt", "--save-map", str(w / "r_map"), *flags)
+    code, st2 = run(s2, w / "r2.txt", "--map", str(w / "r_map"), *flags)
     m = st2["map"]
     gt = read_kitti_poses(src / "poses" / "00.txt")
     entry = next(j for j in range(110) if np.min(np.linalg.norm(gt[:150, :3, 3] - gt[190 + j, :3, 3], axis=1)) < 10)
-    e1 = read_kitti_poses(work / "r1.txt")
+    e1 = read_kitti_poses(w / "r1.txt")
     skip = set(st1["pose_invalid_frame_indices"]) | set(st1["interpolated_frame_indices"])
     rev = [i for i in range(60) if i not in skip]
     (T, al), (S1, al1) = (align_trajectory(e1[rev], gt[rev], with_scale=w) for w in (False, True))  # map; shape
@@ -142,19 +151,20 @@ def rendered_revisit(work: Path, model: str = RENDERED) -> dict:
            "query_ms_mean": m["relocalization_query_ms_mean"], "session1_rmse_m": _rmse(al, gt[rev]),
            "session1_rmse_sim3_m": _rmse(al1, gt[rev]), "session1_truth_per_est": sim3.scale(S1)}
     if m["relocalized"]:
-        e2 = read_kitti_poses(work / "r2.txt")
+        e2 = read_kitti_poses(w / "r2.txt")
         f0 = m["first_localized_frame"]
         g2 = gt[190 + f0: 190 + f0 + len(e2)]
         S2, al2 = align_trajectory(e2, g2)  # session 2 against its own truth: shape, own scale
-        out.update({"session2_rmse_m": _rmse(sim3_apply(T, e2), g2),
-                    "session2_path_m": float(np.sum(np.linalg.norm(np.diff(g2[:, :3, 3], axis=0), axis=1))),
+        path = float(np.sum(np.linalg.norm(np.diff(g2[:, :3, 3], axis=0), axis=1)))
+        out.update({"session2_rmse_m": _rmse(sim3_apply(T, e2), g2), "session2_path_m": path,
+                    "session2_rmse_pct_of_path": 100 * _rmse(sim3_apply(T, e2), g2) / path,
                     "scale_map_per_session": sim3.scale(np.array(m["S_map_world"])),
                     "session2_rmse_sim3_own_m": _rmse(al2, g2), "session2_truth_per_est": sim3.scale(S2)})
     other = work / "other150"
     if not (other / "poses" / "00.txt").is_file():
         generate_sequence(other, 150, seed=5, size=(620, 188), path="loop")
-    run(other, work / "o1.txt", "--save-map", str(work / "o_map"), "--model", model)
-    code_o, st_o = run(s2, work / "r2o.txt", "--map", str(work / "o_map"), "--model", model)
+    run(other, w / "o1.txt", "--save-map", str(w / "o_map"), *flags)
+    code_o, st_o = run(s2, w / "r2o.txt", "--map", str(w / "o_map"), *flags)
     out["foreign_map"] = {"exit_code": code_o, "relocalized": st_o["map"]["relocalized"],
                           "matches": st_o["map"]["relocalization_matches"]}
     return out
@@ -196,15 +206,6 @@ def _rmse(est: np.ndarray, gt: np.ndarray) -> float:
 def _ate_se3_m(est: np.ndarray, gt: np.ndarray) -> float:
     """Position RMSE (m) after the best rigid (SE(3)) alignment of ``est`` to ``gt`` (N, 4, 4)."""
     return _rmse(align_trajectory(est, gt, with_scale=False)[1], gt)
-
-
-def _run_or_refused(seq: Path, out: Path, *flags: str) -> tuple[int, dict | None]:
-    """:func:`run`, or ``(exit code, None)`` when the run refused before writing its JSON."""
-    out.with_suffix(".json").unlink(missing_ok=True)
-    code = cli(["run", str(seq), "--out", str(out), "--json", str(out.with_suffix(".json")),
-                "--deterministic", "--no-progress", *flags])
-    js = out.with_suffix(".json")
-    return code, json.loads(js.read_text()) if js.is_file() else None
 
 
 def kitti_raw_0013(work: Path, data: Path) -> dict | None:
@@ -251,7 +252,7 @@ def kitti_raw_0013(work: Path, data: Path) -> dict | None:
             "single_run_frames": st_all.get("frames")})
     if other.is_dir():
         run(other, work / "k01.txt", *kitti, "--save-map", str(work / "k01_map"))
-        code_o, st_o = _run_or_refused(s2, work / "k13_s2_on01.txt", *kitti, "--map", str(work / "k01_map"))
+        code_o, st_o = run(s2, work / "k13_s2_on01.txt", *kitti, "--map", str(work / "k01_map"))
         out["foreign_map_0001"] = {"exit_code": code_o, "refused_before_run": st_o is None,
                                    "relocalized": bool(st_o and st_o["map"]["relocalized"]),
                                    "matches": st_o["map"]["relocalization_matches"] if st_o else None}
@@ -282,19 +283,16 @@ def render(r: dict, command: str, machine: str) -> str:
              f"**{io['mb']:.1f} MB**, save **{io['save_s_median']:.2f} s**, load **{io['load_s_median']:.2f} s** "
              f"(median of {io['repeats']}; checksums included).", "",
              "## Rendered revisit (session 2 starts outside the map)", "", *_kv(rv)]
+    if "rendered_ground" in r:
+        lines += ["", "## Rendered revisit, learned + road-height scale (`" + " ".join(GROUND) + "`)", "",
+                  *_kv(r["rendered_ground"])]
     lines += ["", "## KITTI odometry 06 (session 1: all 51 frames; session 2: frames START-50 of the same "
               "drive, renumbered; its map-frame positions against session 1's, no alignment)", ""]
-    if k is None:
-        lines.append("KITTI 06 not found; skipped.")
-    else:
-        lines += _table(k)
+    lines += ["KITTI 06 not found; skipped."] if k is None else _table(k)
     k13 = r.get("kitti_raw_0013")
     lines += ["", "## KITTI raw 0013 (session 1: frames 0-99 saves; session 2: frames 40-143, renumbered, "
               "`--map` and `--save-map`; GPS/INS truth)", ""]
-    if k13 is None:
-        lines.append("KITTI raw 0013 not found under --data; skipped.")
-    else:
-        lines += _kv(k13)
+    lines += ["KITTI raw 0013 not found under --data; skipped."] if k13 is None else _kv(k13)
     live = r.get("live_0013")
     if live is not None:
         lines += ["", "## KITTI raw 0013 session 2 through the live stack (`up --map`, `replay --rate 10 "
@@ -324,8 +322,9 @@ def main(argv: list[str] | None = None) -> int:
         result.pop("machine", None)
         earlier = result.pop("command", None)
     else:
-        result = {"rendered": rendered_revisit(work, args.rendered_model)}
-        result["io"] = size_and_io(work / "r_map", work, args.repeats)
+        result = {"rendered": rendered_revisit(work, args.rendered_model),
+                  "rendered_ground": rendered_revisit(work, args.rendered_model, GROUND, "_ground")}
+        result["io"] = size_and_io(work / "r" / "r_map", work, args.repeats)
         result["kitti06"] = kitti06(work)
     if args.only != "live_0013":
         result["kitti_raw_0013"] = kitti_raw_0013(work, Path(args.data))
