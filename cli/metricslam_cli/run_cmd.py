@@ -34,8 +34,8 @@ a pose (:func:`pose_gap_stats`), plus the scale estimate over time
   VO units; for a ground-truth reference). World units are metres in metric mode, and the
   first keyframe's VO units with ``--no-scale`` / ``--vo-only`` (the VO's arbitrary scale).
 * ``vo_suspect_frames`` / ``vo_suspect_ranges`` — frames whose VO tracks may be aliased on
-  repeating texture, and their ``[first, last]`` ranges (``metricslam.slam.vo.aliasing``; a
-  warning line names them).
+  repeating texture (or inside a two-view start its frames do not confirm), and their
+  ``[first, last]`` ranges (``metricslam.slam.vo.aliasing``; a warning line names them).
 * ``scale_corrections`` — one dict per applied warp: ``frame_index``, ``t_ns``, its scale ``s``
   and ``scale_live`` after it.
 * ``scale_states`` — how many frames' poses were ``unscaled`` / ``provisional`` / ``metric`` when

@@ -61,7 +61,9 @@ class PoseEstimate:
             initialization) and ``T_world_cam`` was interpolated at ``t_ns`` between the nearest
             frames before and after it that have one (only :meth:`SlamSession.trajectory` sets it).
         vo_suspect: the VO's tracks on this frame (and the one before) may be aliased on repeating
-            texture, its pose may be wrong (:mod:`metricslam.slam.vo.aliasing`).
+            texture, or the frame starts the map on a two-view start the frames between its views
+            do not confirm: its pose may be wrong (:mod:`metricslam.slam.vo.aliasing`,
+            :func:`metricslam.slam.vo.initializer.start_confirmed`).
         pose_valid: False when the frame has no pose of its own and none could be interpolated
             (no such frame on one side, or the two sides in unrelated world frames);
             ``T_world_cam`` is then a placeholder (:meth:`SlamPipeline.trajectory` says which).

@@ -52,6 +52,18 @@ class SuspectFrames:
                 self.ranges.append([frame_index, frame_index])
         return suspect
 
+    def mark(self, first: int, last: int) -> None:
+        """Frames ``first..last``, none before the newest range's first, are suspect for another
+        reason (a two-view start the frames between its views do not confirm)."""
+        if self.ranges and first <= self.ranges[-1][1] + 1:
+            end = self.ranges[-1][1]
+            self.count += max(last - end, 0)
+            self.ranges[-1][1] = max(end, last)
+            return
+        self.count += last - first + 1
+        if len(self.ranges) < self.max_ranges:
+            self.ranges.append([first, last])
+
     def interrupt(self) -> None:
         """Tracking stopped (a loss): the next tracked frame has no predecessor to agree with."""
         self._previous_high = False

@@ -57,6 +57,10 @@ class VOConfig(BaseModel):
     init_min_parallax_deg: float = Field(
         0.6, gt=0, description="median triangulation angle needed (guards slow/stationary start)")
     init_max_frames: int = Field(60, ge=2, description="restart the reference after N frames")
+    init_pending_min_share: float = Field(
+        0.8, ge=0, le=1, description="a two-view start is reported suspect when a frame between its "
+        "views has fewer than this share of the two-view points agreeing with its pose "
+        "(metricslam.slam.vo.initializer.start_confirmed)")
 
     # --- tracking / loss ---
     min_tracked_landmarks: int = Field(20, ge=6, description="fewer pose inliers means LOST")

@@ -24,7 +24,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
-from metricslam.geometry import se3, sim3, so3
+from metricslam.geometry import se3, sim3
 from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import KeyframeConsumer, PoseEstimate, TrackingState
 from metricslam.slam.vo.aliasing import SuspectFrames, retrack
@@ -32,7 +32,7 @@ from metricslam.slam.vo.ba import orthonormalized
 from metricslam.slam.vo.coasting import MotionMemory
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.frontend import KLTFrontend
-from metricslam.slam.vo.initializer import InitRef, InitResult, try_initialize
+from metricslam.slam.vo.initializer import InitRef, InitResult, pending_poses, start_confirmed, try_initialize
 from metricslam.slam.vo.landmarks import LandmarkMap
 from metricslam.slam.vo.motion_only import estimate_pose, relocalize_pnp
 from metricslam.slam.vo.frame_check import limit_blas_threads, usable_gray
@@ -240,14 +240,14 @@ class LocalVO:
             if too_old or len(tracks) < self.config.init_min_inliers:
                 self._new_reference(frame, gray)
             else:
-                ref.pending.append((frame.index, int(frame.t_ns)))
+                ref.pending.append((frame.index, int(frame.t_ns), tracks.ids, tracks.uv_px))
             return self._estimate(frame, TrackingState.INITIALIZING)
         t1 = time.perf_counter()
-        self._initialize_map(frame, gray, res)
+        confirmed = self._initialize_map(frame, gray, res)
         self.timings_ms["keyframe"].append(1e3 * (time.perf_counter() - t1))
-        return self._estimate(frame, TrackingState.TRACKING, is_kf=True)
+        return self._estimate(frame, TrackingState.TRACKING, is_kf=True, suspect=not confirmed)
 
-    def _initialize_map(self, frame: Frame, gray: np.ndarray, res: InitResult) -> None:
+    def _initialize_map(self, frame: Frame, gray: np.ndarray, res: InitResult) -> bool:  # False: not confirmed
         ref = self._ref
         # keep the scale of the previous segment when there was one: baseline = speed x frames,
         # the speed when tracking was lost (the motion model restarts at rest then)
@@ -276,17 +276,17 @@ class LocalVO:
             self._T_last_cur = np.eye(4)
             self._T_last_cur[:3, 3] = T_ref_cur[:3, 3] / n_frames
             self._motion.started(int(frame.t_ns))
-            # frames between the two views: interpolate (they had no map to track against)
+            # frames between the two views: posed against the two-view points (else interpolated)
             self._anchors.append(Anchor(ref.frame_index, ref.frame_index, np.eye(4)))
-            span = max(frame.t_ns - ref.t_ns, 1)
-            w_ref = so3.log(T_ref_cur[:3, :3])
-            for idx, t_ns in ref.pending:
-                a = (t_ns - ref.t_ns) / span
-                T = se3.from_rt(so3.exp(a * w_ref), a * T_ref_cur[:3, 3])
-                self._anchors.append(Anchor(idx, ref.frame_index, T))
+            poses = pending_poses(self.camera, self.config, ref, res, T_ref_cur, int(frame.t_ns))
+            self._anchors.extend(Anchor(idx, ref.frame_index, T) for idx, T, _ in poses)
             self._anchors.append(Anchor(frame.index, frame.index, np.eye(4)))
             self._ref = None
+        confirmed = start_confirmed(self.config, poses, ref.frame_index, frame.index)
+        if not confirmed:
+            self.suspect.mark(ref.frame_index, frame.index)
         self.window.optimize_and_marginalize()  # the first solve is synchronous
+        return confirmed
 
     def _make_kf(self, frame_index: int, t_ns: int, T_world_kf: np.ndarray, image: np.ndarray) -> Keyframe:
         kf = self.window.add_keyframe(frame_index, t_ns, self._segment, T_world_kf, image)
