@@ -257,6 +257,7 @@ class LocalVO:
         T_ref_cur = res.T_ref_cur.copy()
         T_ref_cur[:3, 3] *= baseline
         T_world_cur = ref.T_world_ref @ T_ref_cur
+        poses = pending_poses(self.camera, self.config, ref, res, T_ref_cur, int(frame.t_ns))  # frames between
         with self._lock:
             kf0 = self._make_kf(ref.frame_index, ref.t_ns, ref.T_world_ref, ref.image)
             kf1 = self._make_kf(frame.index, int(frame.t_ns), T_world_cur, gray)
@@ -278,7 +279,6 @@ class LocalVO:
             self._motion.started(int(frame.t_ns))
             # frames between the two views: posed against the two-view points (else interpolated)
             self._anchors.append(Anchor(ref.frame_index, ref.frame_index, np.eye(4)))
-            poses = pending_poses(self.camera, self.config, ref, res, T_ref_cur, int(frame.t_ns))
             self._anchors.extend(Anchor(idx, ref.frame_index, T) for idx, T, _ in poses)
             self._anchors.append(Anchor(frame.index, frame.index, np.eye(4)))
             self._ref = None
