@@ -28,6 +28,7 @@ import numpy as np
 
 from metricslam.camera import PinholeCamera
 from metricslam.datasets.base import Frame
+from metricslam.geometry import sim3
 from metricslam.slam.events import Solved
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.map.format import SavedMap, load_map, save_map
@@ -40,6 +41,12 @@ log = logging.getLogger(__name__)
 WORLD_FRAME, MAP_FRAME = "world", "map"
 #: agreeing matches before a live session switches to the map frame (the relocalizer's own rule)
 MIN_LIVE_MATCHES = MIN_AGREEING_MATCHES
+#: a session placed in the map before its learned scale was established keeps mapping its live
+#: poses by the matches' network-depth scale until that estimate is within this |log scale| of
+#: rigid: the graph's own scale converges for tens of frames after it is declared established
+#: (KITTI raw 0013: ~14 % over frames 35-60), and a rigid S_map_world before then put the live
+#: poses metres off (``MapLocalization.S_map_world_live``)
+LIVE_RIGID_LOG_SCALE = 0.01
 
 
 def open_map(path: str | Path, camera: PinholeCamera, depth_model_id: str | None) -> SavedMap:
@@ -104,6 +111,12 @@ class MapLocalization:
         self._dirty = threading.Event()  # a solve finished since refresh()
         self._n_matches = 0  # the relocalizer's match version at the last estimate
         self.S_map_world: np.ndarray | None = None
+        #: what the live poses are mapped by (:class:`MapFrameSession`): :attr:`S_map_world`, except
+        #: for a session placed before its learned scale was established, which keeps the
+        #: network-depth (non-rigid) estimate against the graph of the moment until it agrees with
+        #: rigid (:data:`LIVE_RIGID_LOG_SCALE`); the final trajectory always uses :attr:`S_map_world`
+        self.S_map_world_live: np.ndarray | None = None
+        self._live_rigid = False
         self.matches_used = 0
         self.matches_rejected = 0
 
@@ -126,12 +139,21 @@ class MapLocalization:
             return self.S_map_world
         self._dirty.clear()
         metric = self.saved.metric and bool(getattr(self._backend, "scale_established", False))
-        S, used, rejected = self.relocalizer.S_map_world(self._backend.optimized_keyframe_poses(),
-                                                         metric_world=metric)
+        poses = self._backend.optimized_keyframe_poses()
+        S, used, rejected = self.relocalizer.S_map_world(poses, metric_world=metric)
+        S_live = S
+        if metric and not self._live_rigid:
+            S_pre = (None if self.S_map_world_live is None  # placed in a metric world: rigid at once
+                     else self.relocalizer.S_map_world(poses, metric_world=False)[0])
+            if S_pre is None or abs(np.log(sim3.scale(S_pre))) < LIVE_RIGID_LOG_SCALE:
+                self._live_rigid = True
+            else:
+                S_live = S_pre
         with self._lock:
             self._n_matches = n
             if S is not None:
                 self.S_map_world, self.matches_used, self.matches_rejected = S, used, rejected
+                self.S_map_world_live = S_live
             return self.S_map_world
 
     def map_trajectory(self, trajectory: list[PoseEstimate]) -> list[PoseEstimate]:
@@ -198,7 +220,8 @@ class MapFrameSession:
     def process(self, frame: Frame) -> PoseEstimate:
         est = self.inner.process(frame)
         try:
-            S = self.localization.refresh()
+            self.localization.refresh()
+            S = self.localization.S_map_world_live
         except Exception:  # noqa: BLE001 -- a failed estimate keeps the previous one
             log.exception("map: re-estimating S_map_world at frame %d failed", frame.index)
             S = self._S
