@@ -8,7 +8,9 @@ end's latest solve whenever a match verified or a solve finished since the last 
 the map is metric (``metric_world`` of :meth:`Relocalizer.S_map_world`). ``run --map`` asks once, after the run, and maps the final
 trajectory (:meth:`MapLocalization.map_trajectory`); the live service wraps the session in
 :class:`MapFrameSession`, which refreshes after each frame and publishes every pose from then on
-as the rigid ``T_map_cam`` (frame id ``"map"``). Frames and units: ``docs/conventions.md``;
+as the rigid ``T_map_cam`` (frame id ``"map"``), mapped by ``S_map_world_live``: a session placed
+before its learned scale was established keeps the network-depth alignment until it agrees with
+rigid (:data:`LIVE_RIGID_LOG_SCALE`). Frames and units: ``docs/conventions.md``;
 the relocalization itself: ``docs/maps.md``.
 
 :func:`open_map` (load + camera/depth-model check) and :func:`save_session_map` (build + atomic
@@ -132,8 +134,9 @@ class MapLocalization:
         return self.relocalizer.first_frame
 
     def refresh(self, force: bool = False) -> np.ndarray | None:
-        """Re-estimate ``S_map_world`` from every match against the back end's latest solve when
-        something changed since the last call (or ``force``); returns it (None: not relocalized)."""
+        """Re-estimate ``S_map_world`` (and ``S_map_world_live``) from every match against the back
+        end's latest solve when something changed since the last call (or ``force``); returns
+        ``S_map_world`` (None: not relocalized)."""
         n = self.relocalizer.version
         if not (force or n != self._n_matches or (n and self._dirty.is_set())):
             return self.S_map_world
