@@ -50,7 +50,7 @@ def sources(work: Path, data: Path) -> dict[str, Path]:
 def scenario(seq: Path, no_coast: Path | None, kitti: bool) -> dict:
     """One run of ``seq`` (``no_coast``: that VO config file): ATE SE(3) (m), tracking losses."""
     # a cut folder is not recognized as a render; renders run with the model for rendered worlds
-    flags = ("--preset", "kitti") if kitti else RENDERED
+    flags = ("--preset", "kitti") if kitti else ("--model", RENDERED)
     if no_coast is not None:
         flags += ("--config", str(no_coast))
     out = seq.parent / f"{seq.name}_{'no_coast' if no_coast else 'coast'}.txt"
