@@ -156,9 +156,8 @@ def rendered_revisit(work: Path, model: str = RENDERED, flags: tuple[str, ...] =
         f0 = m["first_localized_frame"]
         g2 = gt[190 + f0: 190 + f0 + len(e2)]
         S2, al2 = align_trajectory(e2, g2)  # session 2 against its own truth: shape, own scale
-        path = float(np.sum(np.linalg.norm(np.diff(g2[:, :3, 3], axis=0), axis=1)))
-        out.update({"session2_rmse_m": _rmse(sim3_apply(T, e2), g2), "session2_path_m": path,
-                    "session2_rmse_pct_of_path": 100 * _rmse(sim3_apply(T, e2), g2) / path,
+        path, rmse2 = float(np.sum(np.linalg.norm(np.diff(g2[:, :3, 3], axis=0), axis=1))), _rmse(sim3_apply(T, e2), g2)
+        out.update({"session2_rmse_m": rmse2, "session2_path_m": path, "session2_rmse_pct_of_path": 100 * rmse2 / path,
                     "scale_map_per_session": sim3.scale(np.array(m["S_map_world"])),
                     "session2_rmse_sim3_own_m": _rmse(al2, g2), "session2_truth_per_est": sim3.scale(S2)})
     other = work / "other150"

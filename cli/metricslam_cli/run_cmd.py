@@ -179,9 +179,9 @@ def run(args: argparse.Namespace) -> int:
     from metricslam.datasets.frame_reader import FrameReader
     from metricslam.errors import ConfigError, ScaleError
     from metricslam.ros2.session_log import SessionRecorder
-    from metricslam.slam.vo.aliasing import describe_ranges
     from metricslam.slam.depth_source import OnnxDepthSource
     from metricslam.slam.session_builder import build_session, preset_for
+    from metricslam.slam.vo.aliasing import describe_ranges
     from metricslam.trajectory.io import write_kitti_poses, write_tum
 
     config = config_from_args(args)
