@@ -66,6 +66,10 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
     log.debug("built a %s session: VO %s", config.mode, vo_config.model_dump())
     pipeline = SlamPipeline(camera, vo_config, backend=backend, scale_history=history,
                             initial_scale=config.initial_scale if config.use_scale else None)
+    if backend is not None and graph_config.loop.enabled and graph_config.loop.relocalize_segments:
+        from metricslam.slam.map.segments import SegmentRelocalizer
+
+        SegmentRelocalizer(camera, graph_config.loop).attach(pipeline)
     pipeline.scale_info = {"sources": [s for s, on in (("learned", config.use_scale), ("ground", config.use_ground))
                                        if on], "mount_height_m": config.scale.mount_height_m}
     return pipeline

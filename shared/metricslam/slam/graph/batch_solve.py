@@ -48,16 +48,17 @@ def indeterminate_keyframe(exc: Exception) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def committed_factors(isam: gtsam.ISAM2, corrupt_at: int | None,
-                      kinds: dict[int, object]) -> tuple[gtsam.NonlinearFactorGraph, list]:
+def committed_factors(isam: gtsam.ISAM2, corrupt_at: int | None, kinds: dict[int, object],
+                      drop: tuple = ()) -> tuple[gtsam.NonlinearFactorGraph, list]:
     """The factors ``isam`` holds (only the first ``corrupt_at`` slots, those committed before a
-    failed update, when that is not None; empty slots skipped) and their ``kinds``, in order."""
+    failed update, when that is not None; empty slots and those whose kind is in ``drop``
+    skipped) and their ``kinds``, in order."""
     factors = isam.getFactorsUnsafe()
     n = factors.size() if corrupt_at is None else min(corrupt_at, factors.size())
     graph, out = gtsam.NonlinearFactorGraph(), []
     for i in range(n):
         f = factors.at(i)
-        if f is not None:
+        if f is not None and not any(kinds.get(i) == d for d in drop):
             graph.add(f)
             out.append(kinds.get(i))
     return graph, out

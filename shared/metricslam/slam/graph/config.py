@@ -14,6 +14,8 @@ class LoopConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     enabled: bool = True
+    #: a new tracking segment relocalizes in the session's own map (:mod:`metricslam.slam.map.segments`)
+    relocalize_segments: bool = True
     n_orb_features: int = Field(default=500, gt=0)
     image_scale: float = Field(default=0.5, gt=0, le=1)  # ORB runs on the image resized by this
     keyframe_stride: int = Field(default=2, ge=1)  # only every n-th keyframe is indexed/queried

@@ -89,6 +89,9 @@ class GlobalEstimator:
         self.ground_factors_solved = 0
         self.n_ground_factors = 0  # road-plane scale factors added to the graph
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
+        self._pending_relinks: list = []  # (segment_id, S_map_world, loops) for the next solve
+        #: segment id -> (frame index when it was relocalized, keyframes its loops joined)
+        self.relocalized_segments: dict[int, tuple[int, int]] = {}
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
         self._loop_waiting: collections.deque = collections.deque()
@@ -125,7 +128,8 @@ class GlobalEstimator:
             guess = self.graph.estimate(last.kf_id) @ S_last_k
             t_len = float(np.linalg.norm(S_last_k[:3, 3]))
             sig = np.array([0.2] * 3 + [max(t_len, 5.0 * last.step_length)] * 3 + [0.5])
-            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_last_k, np.diag(1.0 / sig**2))
+            self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_last_k, np.diag(1.0 / sig**2),
+                                    link_kind=f"segment_link {rec.segment_id}")
             self.counters["segment_links"] += 1
         self._records[rec.kf_id] = rec
         self._last_of_segment[rec.segment_id] = rec.kf_id
@@ -179,6 +183,7 @@ class GlobalEstimator:
         n_before = self.graph.n_scale_factors
         n_ground_before = self.n_ground_factors
         try:
+            self._relink_segments()
             res = self.graph.solve()
             if self._pending_loops:  # gate against the solved graph, then solve with the loops
                 for cand in self._pending_loops:
@@ -201,6 +206,36 @@ class GlobalEstimator:
         newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
         self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
                                 int(res["loops_removed"]), solve_ms, bool(res["batch"])))
+
+    def relink_segment(self, segment_id: int, S_map_world: np.ndarray, frame_now: int,
+                       loops: list[tuple[int, int, np.ndarray, np.ndarray, int]]) -> None:
+        """Place tracking segment ``segment_id`` where its relocalization into the session's own
+        map puts it (:mod:`metricslam.slam.map.segments`), at the next solve: its loose link to
+        the previous segment is dropped, its keyframes start from ``S_map_world`` (4, 4; the
+        graph's world before -> after) times their estimate, and ``loops`` ``(kf_old,
+        frame_new, S_old_new (4, 4), sigmas (7,), inliers)`` join it to earlier keyframes,
+        ungated (the relocalization's matches agreed with each other instead)."""
+        self._pending_relinks.append((int(segment_id), np.asarray(S_map_world, float), int(frame_now), loops))
+
+    def _relink_segments(self) -> None:
+        by_frame = {r.frame_index: k for k, r in self._records.items()}
+        for seg, S_map_world, frame_now, loops in self._pending_relinks:
+            joined = [(old, by_frame[f], S, sig, n) for old, f, S, sig, n in loops
+                      if f in by_frame and self.graph.has(old)]
+            if seg in self.relocalized_segments or not joined:
+                continue
+            moved = [k for k, r in self._records.items() if r.segment_id >= seg and self.graph.has(k)]
+            self.graph.replace_factor(f"segment_link {seg}",
+                                      {k: S_map_world @ self.graph.estimate(k) for k in moved})
+            for old, new, S, sig, n in joined:
+                self.graph.add_loop(old, new, S, sig, gate=False)
+                rec = LoopRecord(old, new, self._records[old].frame_index, self._records[new].frame_index, n)
+                self.loops.append(rec)
+            self.relocalized_segments[seg] = (frame_now, len(joined))
+            self.counters["segments_relocalized"] += 1
+            log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops)",
+                     seg, frame_now, len(joined))
+        self._pending_relinks = []
 
     def issue_warp(self, solved: SolvedPose) -> np.ndarray:
         """``S_new_vo`` (4, 4): maps the current VO frame onto the metric world frame so that the

@@ -1,14 +1,13 @@
-"""``GlobalPoseGraph``: Sim(3) keyframe poses ``S_world_kf`` solved incrementally with ISAM2.
+"""``GlobalPoseGraph``: Sim(3) keyframe poses ``S_world_kf`` (``gtsam.Similarity3`` keyed
+``symbol('s', kf_id)``; scale: metres per keyframe VO unit) solved incrementally with ISAM2.
 
-Variables are ``gtsam.Similarity3`` keyed ``symbol('s', kf_id)``; ``S_world_kf``'s scale maps the
-keyframe's own VO units to metres. Factors: ``BetweenFactorSimilarity3`` odometry (eq. 11), the
-same form for loops (robust kernel, Mahalanobis gate against the current marginals, removed again
-if still inconsistent after the solve), and unary log-scale priors (eq. 12, see
-:mod:`metricslam.slam.graph.scale_factor`). ISAM2 keeps each solve's cost bounded as the graph
-grows: only the cliques touched by new factors are re-eliminated (a loop touches the path back
-to its older end). Gauge: the first keyframe gets a prior on rotation and translation; with
-``anchor_scale=True`` (no learned scale, the ``--no-scale`` ablation) it also fixes the scale.
-Not thread-safe: :class:`metricslam.slam.graph.backend.GlobalBackend` serializes access.
+Factors: ``BetweenFactorSimilarity3`` odometry (eq. 11), the same form for loops (robust kernel,
+Mahalanobis gate against the current marginals, removed again if still inconsistent after the
+solve), unary log-scale priors (eq. 12, :mod:`metricslam.slam.graph.scale_factor`). ISAM2 bounds
+each solve's cost: only the cliques touched by new factors are re-eliminated. Gauge: a prior on
+the first keyframe's rotation and translation (and scale with ``anchor_scale=True``, the
+``--no-scale`` ablation). Not thread-safe: :class:`~metricslam.slam.graph.backend.GlobalBackend`
+serializes access.
 """
 
 from __future__ import annotations
@@ -70,6 +69,7 @@ class GlobalPoseGraph:
         self.n_stabilized = 0
         self._corrupt_at: int | None = None  # factors committed before a failed ISAM2 update
         self._uncommitted: list[int] = []  # keyframes added since the last successful update
+        self._drop, self._reseed = (), {}  # the next rebuild's: kinds left out, starts (replace_factor)
 
     # -- construction -------------------------------------------------------------------------
     def has(self, kf_id: int) -> bool:
@@ -83,6 +83,7 @@ class GlobalPoseGraph:
         S_prev_kf: np.ndarray | None = None,
         information: np.ndarray | None = None,
         prior_sigmas: np.ndarray | None = None,
+        link_kind: str = "odometry",
     ) -> None:
         """Insert a keyframe variable with its odometry factor to ``prev_kf_id`` (or a prior).
 
@@ -92,6 +93,7 @@ class GlobalPoseGraph:
             prev_kf_id / S_prev_kf: odometry ``Ŝ_prev_kf`` (4, 4) and its 7x7 ``information``.
             prior_sigmas: (7,) sigmas of a prior at the guess, for a keyframe without odometry
                 (the very first one gets the gauge prior automatically).
+            link_kind: the odometry factor's label (:meth:`replace_factor` can drop it later).
         """
         kf_id = int(kf_id)
         if self.has(kf_id):
@@ -117,7 +119,7 @@ class GlobalPoseGraph:
                                  "measurement and its information")
             noise = gtsam.noiseModel.Gaussian.Information(np.asarray(information, dtype=float))
             self._add(gtsam.BetweenFactorSimilarity3(key(prev_kf_id), key(kf_id),
-                                                     to_gtsam(S_prev_kf), noise), "odometry")
+                                                     to_gtsam(S_prev_kf), noise), link_kind)
 
     def add_scale_measurements(self, kf_id: int, scales: np.ndarray) -> int:
         """Add the log-scale measurements ``s_j`` of keyframe ``kf_id`` (one Huber factor each,
@@ -165,10 +167,8 @@ class GlobalPoseGraph:
         base = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
         k = self.config.loop_kernel_param
         if gate:
-            # the gate found the innovation consistent with the graph's own uncertainty; measured
-            # against the (much tighter) loop noise alone it can be 100 sigma after a long drift.
-            # Keep that innovation inside the kernel's quadratic zone: a fixed threshold would cap
-            # the loop's pull and leave a correct loop half closed (2 km synthetic run: 5 m left).
+            # gated consistent, the innovation can still be 100 loop sigmas after a long drift: keep
+            # it in the kernel's quadratic zone (a fixed one left a 2 km loop 5 m open)
             S_old, S_new = self._current(kf_old), self._current(kf_new)
             innov = gtsam.Similarity3.Logmap(meas.inverse().compose(S_old.between(S_new)))
             k = max(k, 1.5 * float(np.linalg.norm(innov / sigmas)))
@@ -207,6 +207,12 @@ class GlobalPoseGraph:
             return self._isam.calculateEstimateSimilarity3(k)
         return self._latest[int(kf_id)]
 
+    def replace_factor(self, kind: str, reseed: dict[int, np.ndarray]) -> None:
+        """Leave the factor labelled ``kind`` out from the next solve on, a batch rebuild (add a loop
+        first) from ``reseed``'s estimates (kf_id -> (4, 4) ``S_world_kf``) for those keyframes."""
+        self._drop += (kind,)
+        self._reseed.update({int(k): to_gtsam(S) for k, S in reseed.items()})
+
     def _add(self, factor: gtsam.NonlinearFactor, kind: object) -> None:
         self._new_factors.add(factor)
         self._pending_kinds.append(kind)
@@ -214,11 +220,8 @@ class GlobalPoseGraph:
     # -- solving ------------------------------------------------------------------------------
     def solve(self, extra_iterations: int | None = None) -> dict:
         """Push pending factors into ISAM2 and iterate (with a new loop: batch LM + fresh ISAM2);
-        re-check new loops afterwards.
-
-        Returns:
-            ``{"loops_removed": n, "iterations": n, "batch": whether ISAM2 was rebuilt}``.
-        """
+        re-check new loops afterwards. Returns ``{"loops_removed", "iterations", "batch": whether
+        ISAM2 was rebuilt}``."""
         extra = self.config.extra_iterations if extra_iterations is None else extra_iterations
         kinds = self._pending_kinds
         has_loop = any(isinstance(k, tuple) for k in kinds)
@@ -253,13 +256,13 @@ class GlobalPoseGraph:
         return {"loops_removed": removed, "iterations": n_iter, "batch": batch}
 
     def _rebuild(self) -> None:
-        """Batch Levenberg-Marquardt on every factor (ISAM2's, only those committed before a
-        failed update, and the pending ones), then a fresh ISAM2 seeded with the result. The old
-        ISAM2 goes first: both at once (and the solve's temporaries) were the memory high-water
-        mark of a 1000-keyframe session. Indeterminate keyframes get weak priors (counted in
-        ``n_stabilized``); a state that cannot be rebuilt at all raises :class:`GraphError` and
-        leaves the committed factors at their estimate before the call (pending ones kept)."""
-        committed, committed_kinds = batch_solve.committed_factors(self._isam, self._corrupt_at, self._factor_kinds)
+        """Batch LM on every factor (ISAM2's, only those committed before a failed update, and the
+        pending ones), then a fresh ISAM2 seeded with the result (the old one freed first: both
+        were a 1000-keyframe session's memory peak). Indeterminate keyframes get weak priors
+        (``n_stabilized``); a state that cannot be rebuilt raises :class:`GraphError` and leaves
+        the committed factors at their estimate before the call (pending ones kept)."""
+        committed, committed_kinds = batch_solve.committed_factors(self._isam, self._corrupt_at,
+                                                                   self._factor_kinds, self._drop)
         graph, kinds = gtsam.NonlinearFactorGraph(committed), list(committed_kinds)
         for i in range(self._new_factors.size()):
             graph.add(self._new_factors.at(i))
@@ -271,7 +274,7 @@ class GlobalPoseGraph:
         values, committed_estimate = gtsam.Values(), gtsam.Values()
         for kf in self._keyframes:
             k = key(kf)
-            guess = theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf]
+            guess = self._reseed[kf] if kf in self._reseed else (theta.atSimilarity3(k) if theta.exists(k) else self._latest[kf])
             values.insert(k, guess)
             if kf not in uncommitted:
                 committed_estimate.insert(k, estimate.atSimilarity3(k) if solved else guess)
@@ -286,7 +289,7 @@ class GlobalPoseGraph:
         kinds.extend(["stabilizer"] * len(stabilized))
         self.n_stabilized += len(stabilized)
         self._adopt(isam, result.getNewFactorsIndices(), kinds)
-        self._uncommitted = []
+        self._uncommitted, self._drop, self._reseed = [], (), {}
         for kf in self._keyframes:
             self._latest[kf] = values.atSimilarity3(key(kf))
 
@@ -312,11 +315,8 @@ class GlobalPoseGraph:
             self._adopt(isam, range(committed.size()), kinds, corrupt_at=committed.size())
 
     def _iterate(self, max_updates: int, stop_when_converged: bool) -> int:
-        """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map).
-
-        Stops early once an update relinearizes no variable (every delta below the threshold).
-        Returns the number of updates done.
-        """
+        """Extra Gauss-Newton steps with forced relinearization (a loop moves the whole map); the
+        number done (``stop_when_converged``: stops once an update relinearizes no variable)."""
         for i in range(max_updates):
             res = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), force_relinearize=True)
             if stop_when_converged and res.getVariablesRelinearized() == 0:

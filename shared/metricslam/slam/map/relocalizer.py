@@ -137,13 +137,20 @@ class Relocalizer:
     def attach(self, session) -> None:
         """Query every keyframe ``session`` (a pipeline with a back end) marginalizes, and its
         window keyframes early until relocalized."""
+        self.bind(session)
+        session.backend.events.subscribe(self.on_event, KeyframeMarginalized, ScaleMeasured, KeyframeSettled)
+
+    def bind(self, session) -> None:
+        """Use ``session``'s depth source, VO window and back end; events come through
+        :meth:`on_event` (:meth:`attach` subscribes it)."""
         self._depth_source = getattr(session.backend, "depth_source", None)
         self._with_depth = self._depth_source is not None
         self._window = session.vo.window
         self._backend = session.backend
-        session.backend.events.subscribe(self._on_event, KeyframeMarginalized, ScaleMeasured, KeyframeSettled)
 
-    def _on_event(self, ev) -> None:
+    def on_event(self, ev) -> None:
+        """Query the keyframe of a ``KeyframeSettled`` / ``KeyframeMarginalized`` event (or of the
+        ``ScaleMeasured`` its query waited for)."""
         if isinstance(ev, KeyframeSettled):
             if self.first_frame is None and len(self.matches) < EARLY_MATCHES:
                 kf = ev.keyframe

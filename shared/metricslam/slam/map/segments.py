@@ -1,0 +1,145 @@
+"""``SegmentRelocalizer``: after a tracking loss, the new segment relocalizes in the session's own
+map (issue #34 item 3).
+
+A camera that loses tracking restarts its VO as a new tracking segment, linked to the previous
+one by a loose factor at the pose the last motion, kept up for the gap, predicts (``coast_max_s``,
+``docs/vo.md``). Where the camera comes back somewhere the session has mapped (a revisit after a
+long loss, a robot carried or put down on a mapped street, a lens uncovered) that guess can be
+tens of metres and degrees off, and an ordinary loop rarely fixes it: the loop gate measures a
+loop against the link's own uncertainty and refuses one that far off.
+
+So the new segment's keyframes are queried against a snapshot of the session's map, taken at its
+first keyframe (:func:`~metricslam.slam.map.localization.session_map`: every keyframe the back end
+holds; metric once learned scale is established), exactly as a later session relocalizes into a
+saved map (:class:`~metricslam.slam.map.relocalizer.Relocalizer`: retrieval with the session's own
+vocabulary, verification, :data:`~metricslam.slam.map.relocalizer.MIN_AGREEING_MATCHES` matches
+of different keyframes that agree). Once they agree and their keyframes are in the global graph:
+
+* where the link already put the segment (the relocalizer's gates: 2 m where it places the matched
+  keyframes, 0.1 rad, and scale), nothing changes;
+* otherwise the link is dropped and the agreeing matches join the segment to the map keyframes as
+  loop factors, its keyframes moved by the relocalization
+  (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`); the back end's next
+  correction moves the live poses there.
+
+One relocalization per segment; queries stop once the segment is placed or confirmed. Without a
+map yet (a loss before anything was indexed) the segment keeps its link.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from metricslam.camera import PinholeCamera
+from metricslam.errors import MapError
+from metricslam.geometry import sim3, so3
+from metricslam.slam.events import KeyframeMarginalized, KeyframeSettled, ScaleMeasured, Solved
+from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.map.localization import session_map
+from metricslam.slam.map.relocalizer import (
+    GATE_LOG_SCALE,
+    GATE_LOG_SCALE_PREMETRIC,
+    GATE_M,
+    GATE_RAD,
+    MIN_AGREEING_MATCHES,
+    Relocalizer,
+    close,
+)
+
+log = logging.getLogger(__name__)
+
+#: σ of a relocalization loop (rad, metres, log scale before/after learned scale): half the gates
+#: its matches agreed within
+LOOP_SIGMA_RAD, LOOP_SIGMA_M = GATE_RAD / 2, GATE_M / 2
+LOOP_SIGMA_LOG_SCALE, LOOP_SIGMA_LOG_SCALE_PREMETRIC = GATE_LOG_SCALE / 2, 0.2
+
+
+class SegmentRelocalizer:
+    """Relocalizes each new tracking segment of a session in that session's map (module docstring).
+
+    Args:
+        camera: the session's camera.
+        config: loop parameters (the relocalizer's retrieval and verification).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: LoopConfig | None = None) -> None:
+        self.camera = camera
+        self.config = config or LoopConfig()
+        self._pipeline = None
+        self._segment = 0
+        self._reloc: Relocalizer | None = None
+        self._scale_kf: dict[int, float] = {}  # map keyframe id -> its scale in the snapshot
+        self._metric_map = False  # the snapshot was metric (learned scale established)
+        #: segment id -> "relocalized" (moved), "confirmed" (its link agreed) or "no map"
+        self.outcomes: dict[int, str] = {}
+
+    def attach(self, pipeline) -> None:
+        """Watch ``pipeline``'s keyframes (a :class:`~metricslam.slam.pipeline.SlamPipeline` with a
+        back end and a loop database)."""
+        self._pipeline = pipeline
+        pipeline.backend.events.subscribe(self._on_event, KeyframeSettled, KeyframeMarginalized,
+                                          ScaleMeasured, Solved)
+
+    def _on_event(self, ev) -> None:
+        if isinstance(ev, Solved):  # the graph thread, inside the estimator's solve
+            if self._reloc is not None and self._reloc.first_frame is not None:
+                self._place()
+            return
+        kf = getattr(ev, "keyframe", None)
+        if kf is not None and int(kf.segment_id) > self._segment:
+            self._start(int(kf.segment_id))
+        if self._reloc is not None and (kf is None or int(kf.segment_id) == self._segment):
+            self._reloc.on_event(ev)
+
+    def _start(self, segment_id: int) -> None:
+        """A new segment's first keyframe: snapshot the session's map for its queries."""
+        self._segment, self._reloc = segment_id, None
+        backend = self._pipeline.backend
+        try:
+            saved = session_map(self._pipeline, None, metric=bool(backend.scale_established))
+        except MapError as exc:
+            self.outcomes[segment_id] = "no map"
+            log.info("tracking segment %d: nothing mapped to relocalize in yet (%s)", segment_id, exc)
+            return
+        kf = saved.arrays["keyframes"]
+        self._scale_kf = {int(k): float(s) for k, s in zip(kf["kf_id"], kf["scale_kf"])}
+        self._metric_map = bool(saved.metric)
+        self._reloc = Relocalizer(saved, self.camera, self.config)
+        self._reloc.bind(self._pipeline)
+
+    def _place(self) -> None:
+        """Relocalized: confirm the segment's link, or replace it (module docstring)."""
+        backend, reloc = self._pipeline.backend, self._reloc
+        poses = backend.optimized_keyframe_poses()
+        metric = self._metric_map and bool(backend.scale_established)
+        S_map_world = reloc.S_map_world(poses, metric_world=metric)[0]
+        if S_map_world is None:
+            return
+        agreeing = [m for m in reloc.agreeing(S_map_world, poses, metric) if m.kf_frame in poses]
+        if len(agreeing) < MIN_AGREEING_MATCHES:
+            return  # wait until the agreeing keyframes are in the graph
+        self._reloc = None
+        at = np.stack([poses[m.kf_frame][:3, 3] for m in agreeing])
+        gate = GATE_LOG_SCALE if metric else GATE_LOG_SCALE_PREMETRIC
+        if close(S_map_world, np.eye(4), GATE_M, GATE_RAD, gate, at_world=at):
+            self.outcomes[self._segment] = "confirmed"
+            log.info("tracking segment %d: relocalized where its link put it (%d matches agree)",
+                     self._segment, len(agreeing))
+            return
+        loops = []
+        for m in agreeing:
+            R, t, s = sim3.split(reloc.measured_S_mapkf_kf(m, poses[m.kf_frame], metric))
+            s_old = self._scale_kf[m.map_kf_id]
+            sig = np.array([LOOP_SIGMA_RAD] * 3 + [LOOP_SIGMA_M / s_old] * 3
+                           + [LOOP_SIGMA_LOG_SCALE if metric else LOOP_SIGMA_LOG_SCALE_PREMETRIC])
+            loops.append((m.map_kf_id, m.kf_frame, sim3.from_rts(R, t / s_old, s / s_old), sig, m.n_inliers))
+        backend.estimator.relink_segment(self._segment, S_map_world, reloc.first_frame, loops)
+        self.outcomes[self._segment] = "relocalized"
+        R, t, s = sim3.split(S_map_world)
+        log.warning("tracking segment %d relocalized in the session's map at frame %d: moved %.1f m, "
+                    "%.1f deg, scale x%.3f from where its link put it (%d matches agree)", self._segment,
+                    reloc.first_frame, float(np.linalg.norm(sim3.transform_points(S_map_world, at) - at, axis=1).max()),
+                    float(np.degrees(np.linalg.norm(so3.log(R)))), s, len(agreeing))
+
