@@ -22,7 +22,7 @@ from dataset_fixtures import CX, CY, FX, H, W
 from metricslam.datasets import KittiOdometry
 from metricslam.datasets.frame_reader import FrameReader
 from metricslam.geometry import se3, so3
-from metricslam.slam.pipeline import _fill_pose_gaps
+from metricslam.slam.pose_gaps import fill_pose_gaps
 from metricslam.slam.types import PoseEstimate, TrackingState
 from metricslam.slam.vo.frame_check import usable_gray
 from metricslam.trajectory.io import read_kitti_poses, read_tum
@@ -167,14 +167,14 @@ def test_gaps_are_interpolated_in_time_and_on_the_rotation_geodesic():
     # uneven stamps: frame 3 (250 ms) is a quarter of the way from frame 2 (200) to frame 4 (400)
     T = [_pose(0.0, 0.0), _pose(0.1, 1.0), _pose(0.2, 2.0), stale, _pose(0.6, 6.0)]
     poses = [_est(k, T[k], t_ns=t_ms * 1_000_000) for k, t_ms in enumerate((0, 100, 200, 250, 400))]
-    out = _fill_pose_gaps(poses, [True, True, True, False, True], [False] * 5)
+    out = fill_pose_gaps(poses, [True, True, True, False, True], [False] * 5)
     assert [e.interpolated for e in out] == [False, False, False, True, False]
     assert all(e.pose_valid for e in out)
     assert np.allclose(out[3].T_world_cam, _pose(0.3, 3.0))  # alpha = (250-200)/(400-200)
     for k in (0, 1, 2, 4):
         assert out[k] is poses[k]  # frames with a pose of their own are untouched
     everyone = [True] * 5
-    assert _fill_pose_gaps(poses, everyone, everyone) is poses
+    assert fill_pose_gaps(poses, everyone, everyone) is poses
 
 
 @pytest.mark.parametrize("linked", [True, False])
@@ -186,7 +186,7 @@ def test_gaps_across_a_segment_change_need_a_common_world(linked):
     poses[3] = _est(3, _pose(0.0, -16.0), segment=0)
     poses[4] = _est(4, _pose(0.0, -16.0), segment=1)
     own = [True, True, True, False, False, True, True]
-    out = _fill_pose_gaps(poses, own, [linked] * 7)
+    out = fill_pose_gaps(poses, own, [linked] * 7)
     if linked:
         assert [e.interpolated for e in out[3:5]] == [True, True] and all(e.pose_valid for e in out)
         assert np.allclose([e.T_world_cam[0, 3] for e in out], range(7))
@@ -199,9 +199,9 @@ def test_gaps_at_either_end_have_no_pose():
     """Before the first pose the VO sits at its world origin (where the first keyframe will be);
     after the last one, the frame repeats the last pose instead of the VO's stale one."""
     poses = [_est(k, np.eye(4) if k < 2 else _pose(0.0, float(k) if k < 4 else -16.0)) for k in range(6)]
-    out = _fill_pose_gaps(poses, [False, False, True, True, False, False], [True] * 6)
+    out = fill_pose_gaps(poses, [False, False, True, True, False, False], [True] * 6)
     assert [e.pose_valid for e in out] == [False, False, True, True, False, False]
     assert not any(e.interpolated for e in out)
     assert [e.T_world_cam[0, 3] for e in out] == [0.0, 0.0, 2.0, 3.0, 3.0, 3.0]
-    nothing = _fill_pose_gaps(poses[:2], [False, False], [False, False])  # no pose anywhere yet
+    nothing = fill_pose_gaps(poses[:2], [False, False], [False, False])  # no pose anywhere yet
     assert not any(e.pose_valid for e in nothing)

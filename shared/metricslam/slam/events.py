@@ -201,6 +201,18 @@ class KeyframeMarginalized:
 
 
 @dataclass(frozen=True)
+class SegmentRelocalized:
+    """Tracking segment ``segment_id`` (a new one after a tracking loss) was relocalized in the
+    session's own map (:mod:`metricslam.slam.map.segments`) and moved there in the graph: its
+    link to the previous segment replaced by ``n_loops`` loops; ``frame_index``: the frame being
+    processed when its matches first agreed."""
+
+    segment_id: int
+    frame_index: int
+    n_loops: int
+
+
+@dataclass(frozen=True)
 class KeyframeSettled:
     """A keyframe still in the VO window that a newer keyframe has observed: ``keyframe`` is a
     :class:`~metricslam.slam.types.MarginalizedKeyframe` snapshot of it (``T_vo_kf`` and the
@@ -216,7 +228,7 @@ class KeyframeSettled:
 
 
 Event = (ScaleMeasured | GroundScaleMeasured | ScaleHealthUpdated | Solved | LoopAccepted | WarpApplied
-         | InitialScaleApplied | KeyframeMarginalized | KeyframeSettled)
+         | InitialScaleApplied | KeyframeMarginalized | KeyframeSettled | SegmentRelocalized)
 
 
 class EventBus:

@@ -31,6 +31,7 @@ from metricslam.datasets.base import Frame
 from metricslam.geometry import sim3, so3
 from metricslam.slam.events import InitialScaleApplied, KeyframeMarginalized, KeyframeSettled
 from metricslam.slam.initial_scale import InitialScale, InitialScaleConfig, measure_initial_scale
+from metricslam.slam.pose_gaps import fill_pose_gaps
 from metricslam.slam.scale_history import ScaleHistory
 from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import Backend, MarginalizedKeyframe, PoseEstimate, ScaleState, TrackingState
@@ -173,7 +174,7 @@ class SlamPipeline:
                 out.append(dataclasses.replace(est, T_world_cam=T))
                 own.append(anchor is not None)
                 in_graph.append(from_graph)
-        return _fill_pose_gaps(out, own, in_graph)
+        return fill_pose_gaps(out, own, in_graph, getattr(self.backend, "relinked_segments", frozenset()))
 
     def stats(self) -> dict:
         """Frames, keyframes, tracking losses and mean ms per frame of each stage."""
@@ -342,54 +343,6 @@ def _compose_sim3_rigid(S_world_kf: np.ndarray, T_kf_cam: np.ndarray) -> np.ndar
     out[:3, :3] = R @ T_kf_cam[:3, :3]
     out[:3, 3] = s * R @ T_kf_cam[:3, 3] + t
     return out
-
-
-def _fill_pose_gaps(poses: list[PoseEstimate], own: list[bool],
-                    in_graph: list[bool]) -> list[PoseEstimate]:
-    """Give every frame without a pose of its own (``own[k]`` False) an interpolated pose, or
-    a placeholder marked ``pose_valid=False`` (see :meth:`SlamPipeline.trajectory`). Frames with
-    a pose of their own are returned as they are."""
-    n = len(poses)
-    if all(own):
-        return poses
-    left: list[int | None] = [None] * n  # nearest frame at or before k with a pose of its own
-    right: list[int | None] = [None] * n  # ... at or after k
-    for k in range(n):
-        left[k] = k if own[k] else (left[k - 1] if k else None)
-    for k in reversed(range(n)):
-        right[k] = k if own[k] else (right[k + 1] if k + 1 < n else None)
-    out = list(poses)
-    for k, est in enumerate(poses):
-        if own[k]:
-            continue
-        a, b = left[k], right[k]
-        interpolated, valid = False, True
-        if a is not None and b is not None and (
-                poses[a].segment_id == poses[b].segment_id or (in_graph[a] and in_graph[b])):
-            T, interpolated = _interpolate_pose(poses[a], poses[b], est.t_ns, k - a, b - a), True
-        elif a is None:  # before the first pose the VO has no map: it sits at its world origin
-            T, valid = est.T_world_cam, False
-        else:  # the side in this frame's own segment, else the earlier one
-            later_is_own = (b is not None and poses[b].segment_id == est.segment_id
-                            and poses[a].segment_id != est.segment_id)
-            T, valid = poses[b if later_is_own else a].T_world_cam.copy(), False
-        out[k] = dataclasses.replace(est, T_world_cam=T, interpolated=interpolated, pose_valid=valid)
-    return out
-
-
-def _interpolate_pose(a: PoseEstimate, b: PoseEstimate, t_ns: int, steps_from_a: int,
-                      steps_a_to_b: int) -> np.ndarray:
-    """``T_world_cam`` at ``t_ns`` between ``a`` and ``b``: position linear, rotation along the
-    geodesic (``R_a·Exp(α·Log(R_aᵀ·R_b))``), α from the timestamps (from frame counts if the
-    timestamps do not increase)."""
-    span_ns = b.t_ns - a.t_ns
-    alpha = (t_ns - a.t_ns) / span_ns if span_ns > 0 else steps_from_a / steps_a_to_b
-    alpha = min(max(float(alpha), 0.0), 1.0)
-    R_a, R_b = so3.project_to_so3(a.T_world_cam[:3, :3]), so3.project_to_so3(b.T_world_cam[:3, :3])
-    T = np.eye(4)
-    T[:3, :3] = R_a @ so3.exp(alpha * so3.log(R_a.T @ R_b))
-    T[:3, 3] = (1.0 - alpha) * a.T_world_cam[:3, 3] + alpha * b.T_world_cam[:3, 3]
-    return T
 
 
 def window_landmarks_world(session: object) -> np.ndarray | None:

@@ -30,7 +30,7 @@ import zenoh
 
 from metricslam.errors import CodecError, ServiceError
 from metricslam.slam.config_file import load_system_config
-from metricslam.slam.events import Solved
+from metricslam.slam.events import SegmentRelocalized, Solved
 from metricslam.slam.system_config import LIVE_PROFILE, SystemConfig
 from metricslam.wire import keys
 from metricslam.wire.codec import Message, TrajectoryMessage, encode
@@ -241,6 +241,10 @@ class SlamService:
         events = getattr(getattr(session, "backend", None), "events", None)
         if events is not None and self.settings.heap_trim_period_s > 0:
             events.subscribe(self._after_solve, Solved)
+        if events is not None:  # a lost camera put back in its own map: say so beside the poses' jump
+            events.subscribe(lambda ev: self._map_event(camera_id, "segment_relocalized", (
+                f"tracking segment {ev.segment_id} relocalized in this session's map at frame "
+                f"{ev.frame_index} ({ev.n_loops} loops); its poses moved there")), SegmentRelocalized)
 
     def _attach_map(self, camera_id: str, session: object) -> None:
         """Each new session of a camera gets a :class:`MapPublisher` (path, landmarks and

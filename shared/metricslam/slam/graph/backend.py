@@ -172,6 +172,11 @@ class GlobalBackend:
         return dict(poses)
 
     @property
+    def relinked_segments(self) -> frozenset[int]:
+        """Tracking segments a relocalization in the session's own map moved off their link."""
+        return frozenset(self.estimator.relinked_segments)
+
+    @property
     def scale_established(self) -> bool:
         if self.depth_source is None and self.ground_meter is None:
             return False
@@ -234,6 +239,7 @@ class GlobalBackend:
                                                "corrections", "segment_links", "segments_relocalized",
                                                "epoch_mismatches")},
             "relocalized_segments": {str(k): v[0] for k, v in est.relocalized_segments.items()},
+            "relinked_segments": sorted(est.relinked_segments),
             "graph_rebuilds": est.graph.n_rebuilds,
             "graph_stabilized": est.graph.n_stabilized,
             "depth_ms_mean": self._depth_ms.mean_ms,

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from metricslam.errors import GraphError, MetricSlamError
-from metricslam.geometry import sim3
-from metricslam.slam.events import EventBus, LoopAccepted, Solved
+from metricslam.geometry import sim3, so3
+from metricslam.slam.events import EventBus, LoopAccepted, SegmentRelocalized, Solved
 from metricslam.slam.graph import ground_factor
 from metricslam.slam.graph.config import GraphConfig
 from metricslam.slam.graph.odometry import (
@@ -41,6 +41,10 @@ from metricslam.slam.timing import TimingSummary
 from metricslam.slam.types import MarginalizedKeyframe
 
 log = logging.getLogger("metricslam.slam.graph.backend")
+
+#: a relocalization contradicts a new segment's link when it puts the segment this many of the
+#: link's sigmas off it in rotation, translation or scale (:meth:`GlobalEstimator.relink_segment`)
+LINK_CONTRADICTED_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,7 @@ class GlobalEstimator:
         self.solved: SolvedPose | None = None  # newest solve's pose, taken by the scheduler
         self._records: dict[int, KeyframeRecord] = {}
         self._last_of_segment: dict[int, int] = {}
+        self._links: dict[int, tuple] = {}  # segment -> (kf before, its first kf, Ŝ link, sigmas (7,))
         self._newest_kf: int | None = None
         self._pending_scales: dict[int, np.ndarray] = {}
         self._pending_ground: dict[int, tuple[float, float]] = {}  # kf_id -> (scale, sigma_log)
@@ -92,6 +97,7 @@ class GlobalEstimator:
         self._pending_relinks: list = []  # (segment_id, S_map_world, loops) for the next solve
         #: segment id -> (frame index when it was relocalized, keyframes its loops joined)
         self.relocalized_segments: dict[int, tuple[int, int]] = {}
+        self.relinked_segments: set[int] = set()  # ... of them, those whose link was replaced
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
         self._loop_waiting: collections.deque = collections.deque()
@@ -130,6 +136,7 @@ class GlobalEstimator:
             sig = np.array([0.2] * 3 + [max(t_len, 5.0 * last.step_length)] * 3 + [0.5])
             self.graph.add_keyframe(rec.kf_id, guess, last.kf_id, S_last_k, np.diag(1.0 / sig**2),
                                     link_kind=f"segment_link {rec.segment_id}")
+            self._links[rec.segment_id] = (last.kf_id, rec.kf_id, S_last_k, sig)
             self.counters["segment_links"] += 1
         self._records[rec.kf_id] = rec
         self._last_of_segment[rec.segment_id] = rec.kf_id
@@ -210,11 +217,14 @@ class GlobalEstimator:
     def relink_segment(self, segment_id: int, S_map_world: np.ndarray, frame_now: int,
                        loops: list[tuple[int, int, np.ndarray, np.ndarray, int]]) -> None:
         """Place tracking segment ``segment_id`` where its relocalization into the session's own
-        map puts it (:mod:`metricslam.slam.map.segments`), at the next solve: its loose link to
-        the previous segment is dropped, its keyframes start from ``S_map_world`` (4, 4; the
-        graph's world before -> after) times their estimate, and ``loops`` ``(kf_old,
-        frame_new, S_old_new (4, 4), sigmas (7,), inliers)`` join it to earlier keyframes,
-        ungated (the relocalization's matches agreed with each other instead)."""
+        map puts it (:mod:`metricslam.slam.map.segments`), at the next solve, by ``loops``
+        ``(kf_old, frame_new, S_old_new (4, 4), sigmas (7,), inliers)`` to earlier keyframes.
+        The segment's keyframes start the solve from ``S_map_world`` (4, 4; the graph's world
+        before -> after) times their estimate, and the loops go in ungated (the relocalization's
+        matches agreed with each other instead). Its loose link to the previous segment stays,
+        unless the relocalization puts the segment more than :data:`LINK_CONTRADICTED_SIGMAS`
+        of the link's sigmas off it: then the camera did not get there the way the link says
+        (carried, or lost too long), and the link is dropped."""
         self._pending_relinks.append((int(segment_id), np.asarray(S_map_world, float), int(frame_now), loops))
 
     def _relink_segments(self) -> None:
@@ -224,17 +234,28 @@ class GlobalEstimator:
                       if f in by_frame and self.graph.has(old)]
             if seg in self.relocalized_segments or not joined:
                 continue
+            last_id, first_id, S_link, sig_link = self._links[seg]
+            S_est = sim3.inverse(self.graph.estimate(last_id)) @ S_map_world @ self.graph.estimate(first_id)
+            (R1, t1, s1), (R2, t2, s2) = sim3.split(S_link), sim3.split(S_est)
+            off = np.array([np.linalg.norm(so3.log(R1.T @ R2)), np.linalg.norm(t2 - t1),
+                            abs(np.log(s2 / s1))]) / sig_link[[0, 3, 6]]
+            replace = bool(off.max() > LINK_CONTRADICTED_SIGMAS)
             moved = [k for k, r in self._records.items() if r.segment_id >= seg and self.graph.has(k)]
-            self.graph.replace_factor(f"segment_link {seg}",
+            self.graph.replace_factor(f"segment_link {seg}" if replace else None,
                                       {k: S_map_world @ self.graph.estimate(k) for k in moved})
+            if replace:
+                self.relinked_segments.add(seg)
             for old, new, S, sig, n in joined:
                 self.graph.add_loop(old, new, S, sig, gate=False)
                 rec = LoopRecord(old, new, self._records[old].frame_index, self._records[new].frame_index, n)
                 self.loops.append(rec)
+                self.events.emit(LoopAccepted(rec.kf_old, rec.kf_new, rec.frame_old, rec.frame_new, n))
             self.relocalized_segments[seg] = (frame_now, len(joined))
+            self.events.emit(SegmentRelocalized(seg, frame_now, len(joined)))
             self.counters["segments_relocalized"] += 1
-            log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops)",
-                     seg, frame_now, len(joined))
+            log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops; "
+                     "its link %s: %.1f of its sigmas off)", seg, frame_now, len(joined),
+                     "replaced" if replace else "kept", float(off.max()))
         self._pending_relinks = []
 
     def issue_warp(self, solved: SolvedPose) -> np.ndarray:

@@ -17,10 +17,13 @@ of different keyframes that agree). Once they agree and their keyframes are in t
 
 * where the link already put the segment (the relocalizer's gates: 2 m where it places the matched
   keyframes, 0.1 rad, and scale), nothing changes;
-* otherwise the link is dropped and the agreeing matches join the segment to the map keyframes as
-  loop factors, its keyframes moved by the relocalization
-  (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`); the back end's next
-  correction moves the live poses there.
+* otherwise the agreeing matches join the segment to the map keyframes as loop factors
+  (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`): gated loops beside
+  the link where the graph finds them consistent with it (a short loss: the link still says how
+  the segments follow each other), else in place of the link, the segment's keyframes moved where
+  the relocalization puts them (the camera was carried, or lost too long); no pose is then
+  interpolated across the gap (:func:`~metricslam.slam.pose_gaps.fill_pose_gaps`). The back
+  end's next correction moves the live poses there.
 
 One relocalization per segment; queries stop once the segment is placed or confirmed. Without a
 map yet (a loss before anything was indexed) the segment keeps its link.
