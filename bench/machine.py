@@ -14,11 +14,8 @@ import numpy as np
 
 
 def describe() -> str:
-    """CPU model, cores, RAM, OS, Python, numpy and the 1/5/15-min load average now.
-
-    The load average matters: this 2-core machine is often shared with other jobs, and a load
-    well above 0 before a run means its wall-clock numbers are pessimistic.
-    """
+    """CPU model, cores, RAM, OS, Python, numpy and the 1/5/15-min load average now (a load well
+    above 0 before a run on this often shared 2-core machine: its wall-clock numbers are pessimistic)."""
     cpu = platform.processor() or platform.machine()
     mem = "RAM unknown"
     try:

@@ -193,6 +193,10 @@ def test_gaps_across_a_segment_change_need_a_common_world(linked):
     else:
         assert [e.pose_valid for e in out] == own and not any(e.interpolated for e in out)
         assert out[3].T_world_cam[0, 3] == 2.0 and out[4].T_world_cam[0, 3] == 5.0
+    # segment 1 relocalized in the session's map and its link dropped: both sides come from the
+    # graph, but how the camera got from one to the other is unknown, so nothing is interpolated
+    relinked = fill_pose_gaps(poses, own, [True] * 7, relinked={1})
+    assert [e.pose_valid for e in relinked] == own and not any(e.interpolated for e in relinked)
 
 
 def test_gaps_at_either_end_have_no_pose():

@@ -8,8 +8,9 @@ End to end on the rendered loop (seed 3, 620x188; one lap is ~260 frames): frame
 dropped, as if the camera were carried for 14 s and put down on the loop's second lap, where lap
 one mapped. Without the relocalization the new segment stays where its link's coasting guess put
 it, tens of metres off (``relocalize_segments: false``, measured ~68 m); with it, the post-gap
-poses lie within 3 m of the truth aligned on the pre-gap part (measured 0.6 m). A camera put down
-in another world (seed 5) is not relocalized at all.
+poses lie within 3 m of the truth aligned on the pre-gap part (measured 0.9 m), the link is
+dropped and the frames lost before the new segment's first pose have no pose (none is
+interpolated across the jump). A camera put down in another world (seed 5) is not relocalized.
 """
 
 from __future__ import annotations
@@ -82,6 +83,8 @@ def test_camera_put_down_on_a_mapped_street_relocalizes(synth_sequence, tmp_path
     st = _run(seq, tmp_path / "on.txt")
     assert st["tracking_losses"] == 1
     assert list(st["backend"]["relocalized_segments"]) == ["1"], st["backend"]
+    assert st["backend"]["relinked_segments"] == [1]  # carried: its coasting link was dropped
+    assert GAP.start in st["pose_invalid_frame_indices"]  # lost frames: no pose across the jump
     relocalized_at = st["backend"]["relocalized_segments"]["1"]
     assert relocalized_at - GAP.start <= 20, relocalized_at  # within 2 s of frames
     err = _post_gap_error_m(seq, tmp_path / "on.txt", st)

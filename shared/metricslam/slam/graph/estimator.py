@@ -43,7 +43,7 @@ from metricslam.slam.types import MarginalizedKeyframe
 log = logging.getLogger("metricslam.slam.graph.backend")
 
 #: a relocalization contradicts a new segment's link when it puts the segment this many of the
-#: link's sigmas off it in rotation, translation or scale (:meth:`GlobalEstimator.relink_segment`)
+#: link's sigmas off it in rotation, translation or scale (:meth:`GlobalEstimator.link_offset_sigmas`)
 LINK_CONTRADICTED_SIGMAS = 3.0
 
 
@@ -97,7 +97,7 @@ class GlobalEstimator:
         self._pending_relinks: list = []  # (segment_id, S_map_world, loops) for the next solve
         #: segment id -> (frame index when it was relocalized, keyframes its loops joined)
         self.relocalized_segments: dict[int, tuple[int, int]] = {}
-        self.relinked_segments: set[int] = set()  # ... of them, those whose link was replaced
+        self.relinked_segments: set[int] = set()  # the same ids: their link was replaced
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
         self._loop_waiting: collections.deque = collections.deque()
@@ -217,34 +217,41 @@ class GlobalEstimator:
     def relink_segment(self, segment_id: int, S_map_world: np.ndarray, frame_now: int,
                        loops: list[tuple[int, int, np.ndarray, np.ndarray, int]]) -> None:
         """Place tracking segment ``segment_id`` where its relocalization into the session's own
-        map puts it (:mod:`metricslam.slam.map.segments`), at the next solve, by ``loops``
-        ``(kf_old, frame_new, S_old_new (4, 4), sigmas (7,), inliers)`` to earlier keyframes.
-        The segment's keyframes start the solve from ``S_map_world`` (4, 4; the graph's world
-        before -> after) times their estimate, and the loops go in ungated (the relocalization's
-        matches agreed with each other instead). Its loose link to the previous segment stays,
-        unless the relocalization puts the segment more than :data:`LINK_CONTRADICTED_SIGMAS`
-        of the link's sigmas off it: then the camera did not get there the way the link says
-        (carried, or lost too long), and the link is dropped."""
+        map puts it (:mod:`metricslam.slam.map.segments`), at the next solve: its loose link to
+        the previous segment is dropped (the relocalization contradicts it: the camera did not
+        get there the way the link says), its keyframes start the solve from ``S_map_world``
+        (4, 4; the graph's world before -> after) times their estimate, and ``loops`` ``(kf_old,
+        frame_new, S_old_new (4, 4), sigmas (7,), inliers)`` join it to earlier keyframes,
+        ungated (the relocalization's matches agreed with each other instead)."""
         self._pending_relinks.append((int(segment_id), np.asarray(S_map_world, float), int(frame_now), loops))
+
+    def link_offset_sigmas(self, segment_id: int, S_map_world: np.ndarray) -> float:
+        """How far off its link (the largest of rotation, translation, log scale, in the link's own
+        sigmas) ``S_map_world`` (4, 4) moves segment ``segment_id``'s first keyframe; 0 for a
+        segment without a link."""
+        if segment_id not in self._links:
+            return 0.0
+        last_id, first_id, S_link, sig_link = self._links[segment_id]
+        S_moved = sim3.inverse(self.graph.estimate(last_id)) @ S_map_world @ self.graph.estimate(first_id)
+        (R1, t1, s1), (R2, t2, s2) = sim3.split(S_link), sim3.split(S_moved)
+        return float(np.max(np.array([np.linalg.norm(so3.log(R1.T @ R2)), np.linalg.norm(t2 - t1),
+                                      abs(np.log(s2 / s1))]) / sig_link[[0, 3, 6]]))
 
     def _relink_segments(self) -> None:
         by_frame = {r.frame_index: k for k, r in self._records.items()}
-        for seg, S_map_world, frame_now, loops in self._pending_relinks:
+        pending, self._pending_relinks = self._pending_relinks, []
+        for seg, S_map_world, frame_now, loops in pending:
             joined = [(old, by_frame[f], S, sig, n) for old, f, S, sig, n in loops
                       if f in by_frame and self.graph.has(old)]
-            if seg in self.relocalized_segments or not joined:
+            if seg in self.relocalized_segments or seg not in self._links:
+                continue  # placed already; the graph's first segment (nothing to relink)
+            if not joined:  # its keyframes are not in the graph yet
+                self._pending_relinks.append((seg, S_map_world, frame_now, loops))
                 continue
-            last_id, first_id, S_link, sig_link = self._links[seg]
-            S_est = sim3.inverse(self.graph.estimate(last_id)) @ S_map_world @ self.graph.estimate(first_id)
-            (R1, t1, s1), (R2, t2, s2) = sim3.split(S_link), sim3.split(S_est)
-            off = np.array([np.linalg.norm(so3.log(R1.T @ R2)), np.linalg.norm(t2 - t1),
-                            abs(np.log(s2 / s1))]) / sig_link[[0, 3, 6]]
-            replace = bool(off.max() > LINK_CONTRADICTED_SIGMAS)
+            off = self.link_offset_sigmas(seg, S_map_world)
             moved = [k for k, r in self._records.items() if r.segment_id >= seg and self.graph.has(k)]
-            self.graph.replace_factor(f"segment_link {seg}" if replace else None,
-                                      {k: S_map_world @ self.graph.estimate(k) for k in moved})
-            if replace:
-                self.relinked_segments.add(seg)
+            self.graph.replace_factor(f"segment_link {seg}", {k: S_map_world @ self.graph.estimate(k) for k in moved})
+            self.relinked_segments.add(seg)
             for old, new, S, sig, n in joined:
                 self.graph.add_loop(old, new, S, sig, gate=False)
                 rec = LoopRecord(old, new, self._records[old].frame_index, self._records[new].frame_index, n)
@@ -253,10 +260,8 @@ class GlobalEstimator:
             self.relocalized_segments[seg] = (frame_now, len(joined))
             self.events.emit(SegmentRelocalized(seg, frame_now, len(joined)))
             self.counters["segments_relocalized"] += 1
-            log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops; "
-                     "its link %s: %.1f of its sigmas off)", seg, frame_now, len(joined),
-                     "replaced" if replace else "kept", float(off.max()))
-        self._pending_relinks = []
+            log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops in place "
+                     "of its link, %.1f of the link's sigmas off it)", seg, frame_now, len(joined), off)
 
     def issue_warp(self, solved: SolvedPose) -> np.ndarray:
         """``S_new_vo`` (4, 4): maps the current VO frame onto the metric world frame so that the

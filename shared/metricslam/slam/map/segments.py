@@ -12,21 +12,23 @@ So the new segment's keyframes are queried against a snapshot of the session's m
 first keyframe (:func:`~metricslam.slam.map.localization.session_map`: every keyframe the back end
 holds; metric once learned scale is established), exactly as a later session relocalizes into a
 saved map (:class:`~metricslam.slam.map.relocalizer.Relocalizer`: retrieval with the session's own
-vocabulary, verification, :data:`~metricslam.slam.map.relocalizer.MIN_AGREEING_MATCHES` matches
-of different keyframes that agree). Once they agree and their keyframes are in the global graph:
+vocabulary, verification, matches of different keyframes that agree). Once they agree:
 
-* where the link already put the segment (the relocalizer's gates: 2 m where it places the matched
-  keyframes, 0.1 rad, and scale), nothing changes;
-* otherwise the agreeing matches join the segment to the map keyframes as loop factors
-  (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`): gated loops beside
-  the link where the graph finds them consistent with it (a short loss: the link still says how
-  the segments follow each other), else in place of the link, the segment's keyframes moved where
-  the relocalization puts them (the camera was carried, or lost too long); no pose is then
+* if the relocalization puts the segment's first keyframe within
+  :data:`~metricslam.slam.graph.estimator.LINK_CONTRADICTED_SIGMAS` of the link's own sigmas
+  (rotation, translation, scale), the link holds and nothing changes: the ordinary loop detector
+  goes on as before (adding such relocalizations as loops moved short losses both ways,
+  ``docs/history/rule_segment_reloc2_session23.md``);
+* otherwise the link is wrong (the camera was carried, or lost too long) — once
+  :data:`MIN_AGREEING_CONTRADICTING` matches agree, from keyframes at least :data:`MIN_SPAN_M`
+  apart, all in the global graph: the link is dropped, the segment's keyframes are moved where
+  the relocalization puts them and joined to the map keyframes by the matches as loop factors
+  (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`), and no pose is
   interpolated across the gap (:func:`~metricslam.slam.pose_gaps.fill_pose_gaps`). The back
-  end's next correction moves the live poses there.
+  end's next correction moves the live poses there; the service says so (``segment_relocalized``).
 
-One relocalization per segment; queries stop once the segment is placed or confirmed. Without a
-map yet (a loss before anything was indexed) the segment keeps its link.
+One decision per segment; queries stop once it is made. Without a map yet (a loss before anything
+was indexed) the segment keeps its link.
 """
 
 from __future__ import annotations
@@ -40,19 +42,19 @@ from metricslam.errors import MapError
 from metricslam.geometry import sim3, so3
 from metricslam.slam.events import KeyframeMarginalized, KeyframeSettled, ScaleMeasured, Solved
 from metricslam.slam.graph.config import LoopConfig
+from metricslam.slam.graph.estimator import LINK_CONTRADICTED_SIGMAS
 from metricslam.slam.map.localization import session_map
-from metricslam.slam.map.relocalizer import (
-    GATE_LOG_SCALE,
-    GATE_LOG_SCALE_PREMETRIC,
-    GATE_M,
-    GATE_RAD,
-    MIN_AGREEING_MATCHES,
-    Relocalizer,
-    close,
-)
+from metricslam.slam.map.relocalizer import GATE_LOG_SCALE, GATE_M, GATE_RAD, Relocalizer
 
 log = logging.getLogger(__name__)
 
+#: the agreeing matches must include two session keyframes this far apart in the map (metres): two
+#: views of one spot agree with each other however wrong they are (two keyframes 2 frames apart
+#: matched a place 36 m away and 151° round, ``docs/history/rule_segment_reloc_session23.md``)
+MIN_SPAN_M = 3.0
+#: agreeing matches a relocalization needs to override the segment's link: one more than the
+#: relocalizer's (:data:`~metricslam.slam.map.relocalizer.MIN_AGREEING_MATCHES`), as it overrides a prior
+MIN_AGREEING_CONTRADICTING = 3
 #: σ of a relocalization loop (rad, metres, log scale before/after learned scale): half the gates
 #: its matches agreed within
 LOOP_SIGMA_RAD, LOOP_SIGMA_M = GATE_RAD / 2, GATE_M / 2
@@ -75,7 +77,7 @@ class SegmentRelocalizer:
         self._reloc: Relocalizer | None = None
         self._scale_kf: dict[int, float] = {}  # map keyframe id -> its scale in the snapshot
         self._metric_map = False  # the snapshot was metric (learned scale established)
-        #: segment id -> "relocalized" (moved), "confirmed" (its link agreed) or "no map"
+        #: segment id -> "relocalized" (moved off its link), "confirmed" (its link held) or "no map"
         self.outcomes: dict[int, str] = {}
 
     def attach(self, pipeline) -> None:
@@ -120,17 +122,20 @@ class SegmentRelocalizer:
         S_map_world = reloc.S_map_world(poses, metric_world=metric)[0]
         if S_map_world is None:
             return
-        agreeing = [m for m in reloc.agreeing(S_map_world, poses, metric) if m.kf_frame in poses]
-        if len(agreeing) < MIN_AGREEING_MATCHES:
-            return  # wait until the agreeing keyframes are in the graph
-        self._reloc = None
-        at = np.stack([poses[m.kf_frame][:3, 3] for m in agreeing])
-        gate = GATE_LOG_SCALE if metric else GATE_LOG_SCALE_PREMETRIC
-        if close(S_map_world, np.eye(4), GATE_M, GATE_RAD, gate, at_world=at):
+        off = backend.estimator.link_offset_sigmas(self._segment, S_map_world)
+        if off <= LINK_CONTRADICTED_SIGMAS:
+            self._reloc = None  # the link holds: the ordinary loop detector takes it from here
             self.outcomes[self._segment] = "confirmed"
-            log.info("tracking segment %d: relocalized where its link put it (%d matches agree)",
-                     self._segment, len(agreeing))
+            log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)",
+                     self._segment, off)
             return
+        agreeing = [m for m in reloc.agreeing(S_map_world, poses, metric) if m.kf_frame in poses]
+        at = np.stack([poses[m.kf_frame][:3, 3] for m in agreeing]) if agreeing else np.zeros((0, 3))
+        p_map = sim3.transform_points(S_map_world, at)
+        span_m = float(np.max(np.linalg.norm(p_map[:, None] - p_map[None], axis=2))) if len(at) else 0.0
+        if len(agreeing) < MIN_AGREEING_CONTRADICTING or span_m < MIN_SPAN_M:
+            return  # wait: for the agreeing keyframes to reach the graph, or for more evidence
+        self._reloc = None
         loops = []
         for m in agreeing:
             R, t, s = sim3.split(reloc.measured_S_mapkf_kf(m, poses[m.kf_frame], metric))
