@@ -143,11 +143,12 @@ class SegmentRelocalizer:
             sig = np.array([LOOP_SIGMA_RAD] * 3 + [LOOP_SIGMA_M / s_old] * 3
                            + [LOOP_SIGMA_LOG_SCALE if metric else LOOP_SIGMA_LOG_SCALE_PREMETRIC])
             loops.append((m.map_kf_id, m.kf_frame, sim3.from_rts(R, t / s_old, s / s_old), sig, m.n_inliers))
-        backend.estimator.relink_segment(self._segment, S_map_world, reloc.first_frame, loops)
+        frame = max(m.frame_now for m in agreeing)  # the frame whose query completed the evidence
+        backend.estimator.relink_segment(self._segment, S_map_world, frame, loops)
         self.outcomes[self._segment] = "relocalized"
         R, t, s = sim3.split(S_map_world)
         log.warning("tracking segment %d relocalized in the session's map at frame %d: moved %.1f m, "
                     "%.1f deg, scale x%.3f from where its link put it (%d matches agree)", self._segment,
-                    reloc.first_frame, float(np.linalg.norm(sim3.transform_points(S_map_world, at) - at, axis=1).max()),
+                    frame, float(np.linalg.norm(sim3.transform_points(S_map_world, at) - at, axis=1).max()),
                     float(np.degrees(np.linalg.norm(so3.log(R)))), s, len(agreeing))
 
