@@ -295,3 +295,48 @@ def test_a_map_of_another_depth_model_is_refused_for_the_camera(scene, live, sta
     detail = _events(recorder, "map_refused")[0]
     assert "depth model sha256:0000000000000000" in detail and "runs without the map" in detail, detail
     assert {p.frame_id for p in recorder.poses.values()} == {"world"}
+
+
+def test_a_camera_carried_back_onto_its_own_map_is_moved_there_live(scene, stack):
+    """No map loaded: ``tests/test_segment_relocalization.py``'s kidnap (the loop with frames
+    120-264 dropped: the camera put down on lap two, where lap one mapped) replayed into the
+    service, then its last image three more times (a camera still streaming, standing still). It
+    publishes one ``segment_relocalized`` event; its live poses after that, and its
+    ``…/trajectory`` answer for the frames after the gap, are where the truth is (aligned on the
+    frames before it), not ~70 m off where the coasting link left them. (A frame is moved by the
+    back end's correction when the next frame arrives, so the stream goes on past the event.)"""
+    src, root = scene
+    endpoint, client, start = stack
+    svc = start()
+    seq_dir = cut_sequence(src, root / "kidnap", 0, 300, skip=range(120, 265))
+    recorder = PoseRecorder(client, "cam1")
+    time.sleep(0.5)
+    n = _replay(client, seq_dir, camera_id="cam1", recorder=recorder)
+    worker = svc._cameras.get("cam1")
+    assert worker.with_session(lambda session: session.backend.wait_idle(600))
+    deadline = time.monotonic() + 10  # the status message is on its way once the back end is idle
+    while not (details := _events(recorder, "segment_relocalized")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert len(details) == 1 and details[0].startswith("tracking segment 1 relocalized"), details
+    last = open_sequence(seq_dir)[n - 1]
+    pub = FramePublisher(client, "cam1")
+    for k in range(1, 4):
+        pub.publish(n - 1 + k, last.t_ns + k * 100_000_000, last.image, last.camera)
+        assert recorder.wait_frames(n + k, 300), f"no pose for frame {n - 1 + k}"
+    pub.close()
+    assert worker.with_session(lambda session: session.backend.wait_idle(600))
+    out = root / "kidnap_live.txt"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["poses", "--zenoh-endpoint", endpoint, "--out", str(out), "--timeout", "1",
+                     "--camera-id", "cam1", "--trajectory"]) == 0
+    gt = read_kitti_poses(seq_dir / "poses" / "00.txt")
+    est = read_kitti_poses(out)[:n]
+    S, _ = align_trajectory(est[:120], gt[:120])
+
+    def err_m(T: np.ndarray, frame: int) -> float:
+        return float(np.linalg.norm(S[:3, :3] @ T[:3, 3] + S[:3, 3] - gt[frame, :3, 3]))
+
+    after = [err_m(est[f], f) for f in range(125, n)]
+    assert np.mean(after) < 3.0, " ".join(f"{e:.1f}" for e in after)
+    live = [err_m(recorder.poses[n - 1 + k].T_world_cam, n - 1) for k in range(1, 4)]
+    assert max(live) < 3.0, live

@@ -273,6 +273,9 @@ def run(args: argparse.Namespace) -> int:
     if stats["frames_unreadable"] or stats["interpolated"] or stats["pose_invalid"]:
         print(f"{stats['frames_unreadable']} unreadable frames, {stats['interpolated']} poses "
               f"interpolated, {stats['pose_invalid']} frames without a pose (frame lists in --json)")
+    if relocated := stats.get("backend", {}).get("relocalized_segments"):
+        print(f"{len(relocated)} tracking segment(s) relocalized in this run's own map after a tracking loss (at frames "
+              f"{', '.join(map(str, relocated.values()))}): placed there, not where the camera's last motion led")
     if stats["vo_suspect_frames"]:
         print(f"warning: {stats['vo_suspect_frames']} frames whose VO tracks may be aliased on repeating texture "
               f"(frames {describe_ranges(stats['vo_suspect_ranges'])}): the trajectory's shape may be wrong from "

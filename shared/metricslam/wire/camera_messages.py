@@ -144,7 +144,9 @@ class StatusMessage(Message):
     saved map (``relocalized``: poses are in the map frame from now on; ``map_refused``: the
     service's map does not fit this camera, which runs without it; docs/maps.md), or its VO
     (``vo_suspect``: once per run of frames whose tracks may be aliased on repeating texture, so
-    the poses from there may be wrong; docs/vo.md "Aliased tracks").
+    the poses from there may be wrong; docs/vo.md "Aliased tracks"), or a tracking loss
+    (``segment_relocalized``: the new segment was placed in the session's own map, off its
+    coasting link; its poses jump there; docs/maps.md).
     ``scale_health``: scale sources, mounting height, scale σ, health (optional; :mod:`~metricslam.wire.scale_status`).
     """
 
@@ -169,7 +171,7 @@ class StatusMessage(Message):
     scale_state: ScaleState | None = None
     session_stats: dict[str, float | int | str | bool | None] = Field(default_factory=dict)
     event: Literal["camera_refused", "camera_closed", "session_restarted", "session_rolled_over",
-                   "relocalized", "map_refused", "vo_suspect"] | None = None
+                   "relocalized", "map_refused", "vo_suspect", "segment_relocalized"] | None = None
     event_detail: str | None = Field(default=None, max_length=1000)
     scale_health: ScaleHealthStatus | None = None
 

@@ -211,8 +211,11 @@ class GlobalEstimator:
         self.ground_factors_solved = n_ground_before
         self._hand_over_newest()
         newest = -1 if self._newest_kf is None else self._records[self._newest_kf].frame_index
+        n_relinks = len(self._pending_relinks)
         self.events.emit(Solved(self.graph.n_keyframes, self.graph.n_scale_factors, newest,
                                 int(res["loops_removed"]), solve_ms, bool(res["batch"])))
+        if len(self._pending_relinks) > n_relinks:  # a relocalization placed a segment: now, not a
+            self.solve()  # keyframe later (the last keyframes of a stream would never see it)
 
     def relink_segment(self, segment_id: int, S_map_world: np.ndarray, frame_now: int,
                        loops: list[tuple[int, int, np.ndarray, np.ndarray, int]]) -> None:
