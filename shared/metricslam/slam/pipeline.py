@@ -84,6 +84,11 @@ class SlamPipeline:
         self._frame_now = -1  # the frame being processed (KeyframeMarginalized events)
         self._settled_kf_id = -1  # the newest keyframe a KeyframeSettled event was emitted for
 
+    @property
+    def frame_now(self) -> int:
+        """Index of the frame being processed (or the last one; -1 before the first)."""
+        return self._frame_now
+
     # -- KeyframeConsumer (called by the VO from this pipeline's thread) -----------------------
     def on_keyframe_marginalized(self, kf: MarginalizedKeyframe) -> None:
         self._marginalized.add(kf.frame_index)

@@ -333,6 +333,10 @@ class Relocalizer:
         return [m for m, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)
                 if agree_at(S_map_world, S, S_world_kf[None, :3, 3], metric_world)]
 
+    def map_position_m(self, m: RelocMatch) -> np.ndarray:
+        """Where match ``m`` puts its session keyframe's camera in the map (3,)."""
+        return (self._T_map_kf[m.map_kf_id] @ np.append(m.S_mapkf_kf[:3, 3], 1.0))[:3]
+
     def measured_S_mapkf_kf(self, m: RelocMatch, S_world_kf: np.ndarray, metric_world: bool) -> np.ndarray:
         """The match's ``S_mapkf_kf`` (4, 4), its scale the session graph's when ``metric_world``
         (:meth:`S_map_world`)."""

@@ -27,8 +27,9 @@ vocabulary, verification, matches of different keyframes that agree). Once they 
   interpolated across the gap (:func:`~metricslam.slam.pose_gaps.fill_pose_gaps`). The back
   end's next correction moves the live poses there; the service says so (``segment_relocalized``).
 
-One decision per segment; queries stop once it is made. Without a map yet (a loss before anything
-was indexed) the segment keeps its link.
+Only the keyframes of the segment's first :data:`QUERY_WINDOW_S` seconds are queried (later, the
+segment's own drift would read as a contradicted link). One decision per segment; queries stop once
+it is made. Without a map yet (a loss before anything was indexed) the segment keeps its link.
 """
 
 from __future__ import annotations
@@ -55,6 +56,10 @@ MIN_SPAN_M = 3.0
 #: agreeing matches a relocalization needs to override the segment's link: one more than the
 #: relocalizer's (:data:`~metricslam.slam.map.relocalizer.MIN_AGREEING_MATCHES`), as it overrides a prior
 MIN_AGREEING_CONTRADICTING = 3
+#: only the keyframes of a segment's first seconds are queried: the relocalization is about where
+#: the segment started; later, its own drift would read as a contradicted link (a loop closure the
+#: ordinary detector makes without dropping the link: ``docs/history/rule_segment_reloc3_session23.md``)
+QUERY_WINDOW_S = 5.0
 #: σ of a relocalization loop (rad, metres, log scale before/after learned scale): half the gates
 #: its matches agreed within
 LOOP_SIGMA_RAD, LOOP_SIGMA_M = GATE_RAD / 2, GATE_M / 2
@@ -77,6 +82,7 @@ class SegmentRelocalizer:
         self._reloc: Relocalizer | None = None
         self._scale_kf: dict[int, float] = {}  # map keyframe id -> its scale in the snapshot
         self._metric_map = False  # the snapshot was metric (learned scale established)
+        self._t0_ns = 0  # the segment's first keyframe's time
         #: segment id -> "relocalized" (moved off its link), "confirmed" (its link held) or "no map"
         self.outcomes: dict[int, str] = {}
 
@@ -94,13 +100,14 @@ class SegmentRelocalizer:
             return
         kf = getattr(ev, "keyframe", None)
         if kf is not None and int(kf.segment_id) > self._segment:
-            self._start(int(kf.segment_id))
-        if self._reloc is not None and (kf is None or int(kf.segment_id) == self._segment):
+            self._start(int(kf.segment_id), int(kf.t_ns))
+        if self._reloc is not None and (kf is None or (int(kf.segment_id) == self._segment and
+                                                       kf.t_ns - self._t0_ns <= QUERY_WINDOW_S * 1e9)):
             self._reloc.on_event(ev)
 
-    def _start(self, segment_id: int) -> None:
-        """A new segment's first keyframe: snapshot the session's map for its queries."""
-        self._segment, self._reloc = segment_id, None
+    def _start(self, segment_id: int, t0_ns: int) -> None:
+        """A new segment's first keyframe (at ``t0_ns``): snapshot the session's map for its queries."""
+        self._segment, self._reloc, self._t0_ns = segment_id, None, t0_ns
         backend = self._pipeline.backend
         try:
             saved = session_map(self._pipeline, None, metric=bool(backend.scale_established))
@@ -129,21 +136,22 @@ class SegmentRelocalizer:
             log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)",
                      self._segment, off)
             return
-        agreeing = [m for m in reloc.agreeing(S_map_world, poses, metric) if m.kf_frame in poses]
-        at = np.stack([poses[m.kf_frame][:3, 3] for m in agreeing]) if agreeing else np.zeros((0, 3))
-        p_map = sim3.transform_points(S_map_world, at)
-        span_m = float(np.max(np.linalg.norm(p_map[:, None] - p_map[None], axis=2))) if len(at) else 0.0
-        if len(agreeing) < MIN_AGREEING_CONTRADICTING or span_m < MIN_SPAN_M:
-            return  # wait: for the agreeing keyframes to reach the graph, or for more evidence
+        agreeing = reloc.agreeing(S_map_world, poses, metric)  # window keyframes' early matches too
+        p_map = np.array([reloc.map_position_m(m) for m in agreeing]).reshape(-1, 3)
+        span_m = float(np.max(np.linalg.norm(p_map[:, None] - p_map[None], axis=2))) if len(p_map) else 0.0
+        in_graph = [m for m in agreeing if m.kf_frame in poses]
+        if len(agreeing) < MIN_AGREEING_CONTRADICTING or span_m < MIN_SPAN_M or not in_graph:
+            return  # wait: for more evidence, or for an agreeing keyframe to reach the graph
         self._reloc = None
+        at = np.stack([poses[m.kf_frame][:3, 3] for m in in_graph])
         loops = []
-        for m in agreeing:
+        for m in in_graph:
             R, t, s = sim3.split(reloc.measured_S_mapkf_kf(m, poses[m.kf_frame], metric))
             s_old = self._scale_kf[m.map_kf_id]
             sig = np.array([LOOP_SIGMA_RAD] * 3 + [LOOP_SIGMA_M / s_old] * 3
                            + [LOOP_SIGMA_LOG_SCALE if metric else LOOP_SIGMA_LOG_SCALE_PREMETRIC])
             loops.append((m.map_kf_id, m.kf_frame, sim3.from_rts(R, t / s_old, s / s_old), sig, m.n_inliers))
-        frame = max(m.frame_now for m in agreeing)  # the frame whose query completed the evidence
+        frame = self._pipeline.frame_now  # placed while processing it (inline), or just after
         backend.estimator.relink_segment(self._segment, S_map_world, frame, loops)
         self.outcomes[self._segment] = "relocalized"
         R, t, s = sim3.split(S_map_world)
