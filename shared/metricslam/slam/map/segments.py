@@ -21,8 +21,9 @@ vocabulary, verification, matches of different keyframes that agree). Once they 
   ``docs/history/rule_segment_reloc2_session23.md``);
 * otherwise the link is wrong (the camera was carried, or lost too long) — once
   :data:`MIN_AGREEING_CONTRADICTING` matches agree, from keyframes at least :data:`MIN_SPAN_M`
-  apart, all in the global graph: the link is dropped, the segment's keyframes are moved where
-  the relocalization puts them and joined to the map keyframes by the matches as loop factors
+  apart (early ones of window keyframes included), one of them in the global graph: the link is
+  dropped, the segment's keyframes are moved where the relocalization puts them and joined to the
+  map keyframes by the matches in the graph as loop factors
   (:meth:`~metricslam.slam.graph.estimator.GlobalEstimator.relink_segment`), and no pose is
   interpolated across the gap (:func:`~metricslam.slam.pose_gaps.fill_pose_gaps`). The back
   end's next correction moves the live poses there; the service says so (``segment_relocalized``).
