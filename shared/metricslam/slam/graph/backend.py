@@ -174,7 +174,7 @@ class GlobalBackend:
     @property
     def relinked_segments(self) -> frozenset[int]:
         """Tracking segments a relocalization in the session's own map moved off their link."""
-        return frozenset(self.estimator.relinked_segments)
+        return frozenset(self.estimator.relocalized_segments)
 
     @property
     def scale_established(self) -> bool:
@@ -239,7 +239,6 @@ class GlobalBackend:
                                                "corrections", "segment_links", "segments_relocalized",
                                                "epoch_mismatches")},
             "relocalized_segments": {str(k): v[0] for k, v in est.relocalized_segments.items()},
-            "relinked_segments": sorted(est.relinked_segments),
             "graph_rebuilds": est.graph.n_rebuilds,
             "graph_stabilized": est.graph.n_stabilized,
             "depth_ms_mean": self._depth_ms.mean_ms,

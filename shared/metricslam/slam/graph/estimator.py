@@ -94,10 +94,10 @@ class GlobalEstimator:
         self.ground_factors_solved = 0
         self.n_ground_factors = 0  # road-plane scale factors added to the graph
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
-        self._pending_relinks: list = []  # (segment_id, S_map_world, loops) for the next solve
-        #: segment id -> (frame index when it was relocalized, keyframes its loops joined)
+        self._pending_relinks: list = []  # (segment_id, S_map_world, frame, loops) for the next solve
+        #: segment id -> (frame index when it was relocalized, keyframes its loops joined): each
+        #: placed off its link by a relocalization in the session's own map (:meth:`relink_segment`)
         self.relocalized_segments: dict[int, tuple[int, int]] = {}
-        self.relinked_segments: set[int] = set()  # the same ids: their link was replaced
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
         self._loop_waiting: collections.deque = collections.deque()
@@ -254,7 +254,6 @@ class GlobalEstimator:
             off = self.link_offset_sigmas(seg, S_map_world)
             moved = [k for k, r in self._records.items() if r.segment_id >= seg and self.graph.has(k)]
             self.graph.replace_factor(f"segment_link {seg}", {k: S_map_world @ self.graph.estimate(k) for k in moved})
-            self.relinked_segments.add(seg)
             for old, new, S, sig, n in joined:
                 self.graph.add_loop(old, new, S, sig, gate=False)
                 rec = LoopRecord(old, new, self._records[old].frame_index, self._records[new].frame_index, n)

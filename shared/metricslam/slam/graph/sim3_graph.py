@@ -160,7 +160,7 @@ class GlobalPoseGraph:
                 raise GraphError(f"loop references unknown keyframe {k}")
         sigmas = np.asarray(sigmas, dtype=float)
         meas = to_gtsam(S_old_new)
-        d2 = self.loop_mahalanobis_sq(kf_old, kf_new, meas, sigmas) if gate else 0.0
+        d2 = self._loop_mahalanobis_sq(kf_old, kf_new, meas, sigmas) if gate else 0.0
         if gate and not (np.isfinite(d2) and d2 <= LOOP_GATE_CHI2):
             self.n_loops_rejected += 1
             return LoopDecision(False, kf_old, kf_new, d2, "inconsistent with the graph (gate)")
@@ -180,9 +180,8 @@ class GlobalPoseGraph:
         self.n_loops_accepted += 1
         return LoopDecision(True, kf_old, kf_new, d2, "accepted")
 
-    def loop_mahalanobis_sq(self, kf_old: int, kf_new: int, meas: gtsam.Similarity3,
-                            sigmas: np.ndarray) -> float:
-        """The gate's chi² (:meth:`add_loop`) of a loop ``meas`` with noise ``sigmas`` (7,)."""
+    def _loop_mahalanobis_sq(self, kf_old: int, kf_new: int, meas: gtsam.Similarity3,
+                             sigmas: np.ndarray) -> float:
         S_old, S_new = self._current(kf_old), self._current(kf_new)
         rel = S_old.between(S_new)
         innov = gtsam.Similarity3.Logmap(meas.inverse().compose(rel))
@@ -208,10 +207,10 @@ class GlobalPoseGraph:
             return self._isam.calculateEstimateSimilarity3(k)
         return self._latest[int(kf_id)]
 
-    def replace_factor(self, kind: str | None, reseed: dict[int, np.ndarray]) -> None:
-        """Leave the factor labelled ``kind`` (None: none) out from the next solve on, a batch rebuild
-        (add a loop first) from ``reseed``'s estimates (kf_id -> (4, 4) ``S_world_kf``)."""
-        self._drop += (kind,) if kind is not None else ()
+    def replace_factor(self, kind: str, reseed: dict[int, np.ndarray]) -> None:
+        """Leave the factor labelled ``kind`` out from the next solve on, a batch rebuild (add a
+        loop first) from ``reseed``'s estimates (kf_id -> (4, 4) ``S_world_kf``)."""
+        self._drop += (kind,)
         self._reseed.update({int(k): to_gtsam(S) for k, S in reseed.items()})
 
     def _add(self, factor: gtsam.NonlinearFactor, kind: object) -> None:
