@@ -10,7 +10,9 @@ one mapped. Without the relocalization the new segment stays where its link's co
 it, tens of metres off (``relocalize_segments: false``, measured ~68 m); with it, the post-gap
 poses lie within 3 m of the truth aligned on the pre-gap part (measured 0.9 m), the link is
 dropped and the frames lost before the new segment's first pose have no pose (none is
-interpolated across the jump). A camera put down in another world (seed 5) is not relocalized.
+interpolated across the jump). A camera put down in another world (seed 5) 15 s later is not
+relocalized. The same kidnap with no time passing over the gap (frames renumbered at 10 Hz) is a
+short loss, which the link's coasting covers: the contradicting relocalization is not believed.
 """
 
 from __future__ import annotations
@@ -94,6 +96,8 @@ def test_camera_put_down_on_a_mapped_street_relocalizes(synth_sequence, tmp_path
     st_off = _run(seq, tmp_path / "off.txt", "--config", str(off))
     assert st_off["backend"]["relocalized_segments"] == {}
     assert _post_gap_error_m(seq, tmp_path / "off.txt", st_off).mean() > 20.0
+    (seq / "times.txt").write_text("".join(f"{0.1 * j:.6f}\n" for j in range(300 - len(GAP))))
+    assert _run(seq, tmp_path / "short.txt")["backend"]["relocalized_segments"] == {}
 
 
 @pytest.mark.slow
@@ -107,7 +111,9 @@ def test_camera_put_down_in_another_world_is_not_relocalized(synth_sequence, tmp
     for j, (src, i) in enumerate(frames):
         for sub in ("image_0", "image_1"):
             shutil.copy(src / sub / f"{i:06d}.png", seq / sub / f"{j:06d}.png")
-    (seq / "times.txt").write_text("".join(f"{0.1 * j:.6f}\n" for j in range(len(frames))))
+    # 15 s pass between the worlds: a loss that long lets a relocalization override the link
+    (seq / "times.txt").write_text("".join(f"{0.1 * j + (15.0 if j >= 150 else 0.0):.6f}\n"
+                                           for j in range(len(frames))))
     st = _run(seq, tmp_path / "foreign.txt")
     assert st["tracking_losses"] >= 1
     assert st["backend"]["relocalized_segments"] == {}, st["backend"]

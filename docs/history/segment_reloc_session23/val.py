@@ -17,10 +17,10 @@ K13_POSES = RAW / "poses" / "2011_09_26_drive_0013.txt"
 SEEDS = range(155, 165)
 
 
-def world(seed):
-    d = SRC / f"loop300_{seed}"
+def world(seed, n=300):
+    d = SRC / f"loop{n}_{seed}"
     if not (d / "poses" / "00.txt").is_file():
-        generate_sequence(d, 300, seed=seed, size=(620, 188), path="loop")
+        generate_sequence(d, n, seed=seed, size=(620, 188), path="loop")
     return d
 
 
@@ -33,8 +33,10 @@ def compose(name, parts):
     for sub in ("image_0", "image_1"):
         (dst / sub).mkdir(parents=True)
     shutil.copy(parts[0][0] / "calib.txt", dst / "calib.txt")
-    j, lines, have = 0, [], True
-    for folder, frames, poses in parts:
+    j, lines, have, times, t = 0, [], True, [], -0.1
+    for part in parts:  # (folder, frames, poses[, seconds that pass before the part's first frame])
+        folder, frames, poses = part[:3]
+        t += part[3] if len(part) > 3 else 0.0
         pl = poses.read_text().splitlines() if poses is not None and poses.is_file() else None
         have &= pl is not None
         for i in frames:
@@ -42,8 +44,9 @@ def compose(name, parts):
                 shutil.copy(folder / sub / f"{i:06d}.png", dst / sub / f"{j:06d}.png")
             if pl is not None:
                 lines.append(pl[i])
-            j += 1
-    (dst / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(j)))
+            j, t = j + 1, t + 0.1
+            times.append(t)
+    (dst / "times.txt").write_text("".join(f"{x:.6f}\n" for x in times))
     if have:
         (dst / "poses").mkdir()
         (dst / "poses" / "00.txt").write_text("".join(f"{x}\n" for x in lines))
@@ -65,11 +68,11 @@ def scenarios():
     return out
 
 
-def main(tag, out_path):
+def main(tag, out_path, make_scenarios=None):
     done = set()
     if Path(out_path).is_file():
         done = {json.loads(x)["name"] for x in Path(out_path).read_text().splitlines()}
-    for name, kind, parts, n1, kitti in scenarios():
+    for name, kind, parts, n1, kitti in (make_scenarios or scenarios)():
         if name in done:
             continue
         seq = compose(name.replace(" ", "_").replace(">", ""), parts)

@@ -69,7 +69,7 @@ def build_session(camera: PinholeCamera, config: SystemConfig,
     if backend is not None and graph_config.loop.enabled and graph_config.loop.relocalize_segments:
         from metricslam.slam.map.segments import SegmentRelocalizer
 
-        SegmentRelocalizer(camera, graph_config.loop).attach(pipeline)
+        SegmentRelocalizer(camera, graph_config.loop, vo_config.coast_max_s).attach(pipeline)
     pipeline.scale_info = {"sources": [s for s, on in (("learned", config.use_scale), ("ground", config.use_ground))
                                        if on], "mount_height_m": config.scale.mount_height_m}
     return pipeline

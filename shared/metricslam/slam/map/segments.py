@@ -61,6 +61,11 @@ MIN_AGREEING_CONTRADICTING = 3
 #: the segment started; later, its own drift would read as a contradicted link (a loop closure the
 #: ordinary detector makes without dropping the link: ``docs/history/rule_segment_reloc3_session23.md``)
 QUERY_WINDOW_S = 5.0
+#: a relocalization may override the link only after a loss longer than the coasting covers plus
+#: this (s; keyframe spacing and the VO's re-initialization): within it the link's prediction holds
+#: and a contradiction is likelier a wrong match (twice on rendered loops: places 36-44 m away seen
+#: 151-175° round, 3 matches agreeing; ``docs/history/rule_segment_reloc4_session23.md``)
+LOSS_MARGIN_S = 3.0
 #: σ of a relocalization loop (rad, metres, log scale before/after learned scale): half the gates
 #: its matches agreed within
 LOOP_SIGMA_RAD, LOOP_SIGMA_M = GATE_RAD / 2, GATE_M / 2
@@ -73,18 +78,23 @@ class SegmentRelocalizer:
     Args:
         camera: the session's camera.
         config: loop parameters (the relocalizer's retrieval and verification).
+        coast_max_s: the VO's ``coast_max_s`` (how long the link's coasting lasts).
     """
 
-    def __init__(self, camera: PinholeCamera, config: LoopConfig | None = None) -> None:
+    def __init__(self, camera: PinholeCamera, config: LoopConfig | None = None, coast_max_s: float = 2.0) -> None:
         self.camera = camera
         self.config = config or LoopConfig()
+        self.min_loss_s = coast_max_s + LOSS_MARGIN_S
+        self._last_kf_t_ns: int | None = None  # the current segment's newest keyframe seen
+        self._loss_s = 0.0  # newest keyframe before the current segment -> its first keyframe
         self._pipeline = None
         self._segment = 0
         self._reloc: Relocalizer | None = None
         self._scale_kf: dict[int, float] = {}  # map keyframe id -> its scale in the snapshot
         self._metric_map = False  # the snapshot was metric (learned scale established)
         self._t0_ns = 0  # the segment's first keyframe's time
-        #: segment id -> "relocalized" (moved off its link), "confirmed" (its link held) or "no map"
+        #: segment id -> "relocalized" (moved off its link), "confirmed" (its link held), "short loss"
+        #: (contradicted, but the loss was shorter than ``min_loss_s``: the link held) or "no map"
         self.outcomes: dict[int, str] = {}
 
     def attach(self, pipeline) -> None:
@@ -101,7 +111,10 @@ class SegmentRelocalizer:
             return
         kf = getattr(ev, "keyframe", None)
         if kf is not None and int(kf.segment_id) > self._segment:
+            self._loss_s = 0.0 if self._last_kf_t_ns is None else (int(kf.t_ns) - self._last_kf_t_ns) / 1e9
             self._start(int(kf.segment_id), int(kf.t_ns))
+        if kf is not None and int(kf.segment_id) == self._segment:
+            self._last_kf_t_ns = max(self._last_kf_t_ns or 0, int(kf.t_ns))
         if self._reloc is not None and (kf is None or (int(kf.segment_id) == self._segment and
                                                        kf.t_ns - self._t0_ns <= QUERY_WINDOW_S * 1e9)):
             self._reloc.on_event(ev)
@@ -131,11 +144,11 @@ class SegmentRelocalizer:
         if S_map_world is None:
             return
         off = backend.estimator.link_offset_sigmas(self._segment, S_map_world)
-        if off <= LINK_CONTRADICTED_SIGMAS:
+        if off <= LINK_CONTRADICTED_SIGMAS or self._loss_s < self.min_loss_s:
             self._reloc = None  # the link holds: the ordinary loop detector takes it from here
-            self.outcomes[self._segment] = "confirmed"
-            log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)",
-                     self._segment, off)
+            self.outcomes[self._segment] = "confirmed" if off <= LINK_CONTRADICTED_SIGMAS else "short loss"
+            log.info("tracking segment %d: relocalized %.1f of its link's sigmas off it after a %.1f s loss: "
+                     "the link stays", self._segment, off, self._loss_s)
             return
         agreeing = reloc.agreeing(S_map_world, poses, metric)  # window keyframes' early matches too
         p_map = np.array([reloc.map_position_m(m) for m in agreeing]).reshape(-1, 3)
