@@ -14,7 +14,7 @@ SRC, WORK = Path("/tmp/s23/val/src"), Path("/tmp/s23/val/run")
 RAW = Path("/work/shared/data/kitti_raw_stereo")
 K13, K01, K1405 = (RAW / "sequences" / n for n in ("2011_09_26_drive_0013", "2011_09_26_drive_0001", "2011_09_26_residential_1405"))
 K13_POSES = RAW / "poses" / "2011_09_26_drive_0013.txt"
-SEEDS = range(155, 165)
+SEEDS = list(range(155, 165))
 
 
 def world(seed, n=300):
@@ -53,15 +53,38 @@ def compose(name, parts):
     return dst
 
 
-def scenarios():
+def per_seed(seeds, gap_s=None, short_s=None):
+    """Kidnap, short-gap and foreign scenarios on the 300-frame loops of ``seeds`` (the last one's
+    foreign world is the first's); ``gap_s`` / ``short_s``: seconds that pass over the gaps (None:
+    the frames are re-timed at 10 Hz, the gap takes no time)."""
+    g, gs = (() if gap_s is None else (gap_s,)), (() if short_s is None else (short_s,))
     out = []
-    for s in SEEDS:
+    for s in seeds:
         w = world(s)
         p = w / "poses" / "00.txt"
-        out.append((f"kidnap {s}", "kidnap", [(w, range(0, 120), p), (w, range(265, 300), p)], 120, False))
-        out.append((f"short gap {s}", "short", [(w, range(0, 100), p), (w, range(108, 300), p)], 100, False))
-        w2 = world(s + 1 if s < 164 else 155)
-        out.append((f"foreign {s}->{s + 1 if s < 164 else 155}", "foreign", [(w, range(0, 150), None), (w2, range(150, 300), None)], 150, False))
+        nxt = s + 1 if s < seeds[-1] else seeds[0]
+        out.append((f"kidnap {s}", "kidnap", [(w, range(0, 120), p), (w, range(265, 300), p, *g)], 120, False))
+        out.append((f"short gap {s}", "short", [(w, range(0, 100), p), (w, range(108, 300), p, *gs)], 100, False))
+        out.append((f"foreign {s}->{nxt}", "foreign", [(w, range(0, 150), None), (world(nxt), range(150, 300), None, *g)],
+                    150, False))
+    return out
+
+
+def loops150(seeds, timed=False):
+    """150-frame loops of ``seeds`` with frames 40-46 and, separately, 90-98 dropped (``timed``:
+    the dropped frames' time passes)."""
+    out = []
+    for s in seeds:
+        w = world(s, 150)
+        p = w / "poses" / "00.txt"
+        for a, b in ((40, 47), (90, 99)):
+            t = (0.1 * (b - a),) if timed else ()
+            out.append((f"loop150 {s} drop {a}-{b - 1}", "short", [(w, range(0, a), p), (w, range(b, 150), p, *t)], a, False))
+    return out
+
+
+def scenarios():
+    out = per_seed(SEEDS)
     out.append(("real revisit 0013", "kidnap", [(K13, range(0, 100, 2), K13_POSES), (K13, range(21, 80, 2), K13_POSES)], 50, True))
     out.append(("real foreign 0013->0001", "foreign", [(K13, range(0, 100, 2), None), (K01, range(0, 54), None)], 50, True))
     out.append(("real foreign 0013->1405", "foreign", [(K13, range(0, 100, 2), None), (K1405, range(0, 80), None)], 50, True))  # not runnable: 1405 is JPEG, 1242x375

@@ -4,25 +4,13 @@ Usage: PYTHONPATH=<tree>/shared:<tree>/cli:<tree>:<tree>/services/slam python va
 """
 import sys
 
-from val import K01, K13, K13_POSES, main, world
+from val import K01, K13, K13_POSES, loops150, main, per_seed
 
-SEEDS, SHORT_SEEDS = range(175, 185), range(185, 195)
+SEEDS, SHORT_SEEDS = list(range(175, 185)), range(185, 195)
 
 
 def scenarios():
-    out = []
-    for s in SEEDS:
-        w = world(s)
-        p = w / "poses" / "00.txt"
-        out.append((f"kidnap {s}", "kidnap", [(w, range(0, 120), p), (w, range(265, 300), p)], 120, False))
-        out.append((f"short gap {s}", "short", [(w, range(0, 100), p), (w, range(108, 300), p)], 100, False))
-        w2 = world(s + 1 if s < 184 else 175)
-        out.append((f"foreign {s}->{s + 1 if s < 184 else 175}", "foreign", [(w, range(0, 150), None), (w2, range(150, 300), None)], 150, False))
-    for s in SHORT_SEEDS:  # 150-frame loops, the gaps of bench.tracking_loss's "other"
-        w = world(s, 150)
-        p = w / "poses" / "00.txt"
-        for a, b in ((40, 47), (90, 99)):
-            out.append((f"loop150 {s} drop {a}-{b - 1}", "short", [(w, range(0, a), p), (w, range(b, 150), p)], a, False))
+    out = per_seed(SEEDS) + loops150(SHORT_SEEDS)
     out.append(("real revisit 0013 c", "kidnap", [(K13, range(1, 144, 2), K13_POSES), (K13, range(40, 101, 2), K13_POSES)], 72, True))
     out.append(("real foreign 0013 odd->0001", "foreign", [(K13, range(1, 100, 2), None), (K01, range(0, 54), None)], 50, True))
     return out

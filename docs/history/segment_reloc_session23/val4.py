@@ -2,100 +2,19 @@
 
 Usage: PYTHONPATH=<tree>/shared:<tree>/cli:<tree>:<tree>/services/slam python val.py TAG OUT.jsonl
 """
-import json, shutil, sys
-from pathlib import Path
-import numpy as np
-from bench.maps import run, RENDERED, _ate_se3_m
-from metricslam.synth.scene import generate_sequence
-from metricslam.trajectory.io import read_kitti_poses
-from metricslam.geometry.align import align_trajectory, apply_to_poses
+import sys
 
-SRC, WORK = Path("/tmp/s23/val/src"), Path("/tmp/s23/val/run")
-RAW = Path("/work/shared/data/kitti_raw_stereo")
-K13, K01, K1405 = (RAW / "sequences" / n for n in ("2011_09_26_drive_0013", "2011_09_26_drive_0001", "2011_09_26_residential_1405"))
-K13_POSES = RAW / "poses" / "2011_09_26_drive_0013.txt"
-SEEDS, SHORT_SEEDS = range(195, 205), range(205, 215)
+from val import K01, K13, K13_POSES, loops150, main, per_seed
 
-
-def world(seed, n=300):
-    d = SRC / f"loop{n}_{seed}"
-    if not (d / "poses" / "00.txt").is_file():
-        generate_sequence(d, n, seed=seed, size=(620, 188), path="loop")
-    return d
-
-
-def compose(name, parts):
-    """parts: [(folder, frames, poses file or None)] -> one KITTI-layout folder, re-timed at 10 Hz."""
-    dst = WORK / name
-    if (dst / "times.txt").is_file():
-        return dst
-    shutil.rmtree(dst, ignore_errors=True)
-    for sub in ("image_0", "image_1"):
-        (dst / sub).mkdir(parents=True)
-    shutil.copy(parts[0][0] / "calib.txt", dst / "calib.txt")
-    j, lines, have = 0, [], True
-    for folder, frames, poses in parts:
-        pl = poses.read_text().splitlines() if poses is not None and poses.is_file() else None
-        have &= pl is not None
-        for i in frames:
-            for sub in ("image_0", "image_1"):
-                shutil.copy(folder / sub / f"{i:06d}.png", dst / sub / f"{j:06d}.png")
-            if pl is not None:
-                lines.append(pl[i])
-            j += 1
-    (dst / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(j)))
-    if have:
-        (dst / "poses").mkdir()
-        (dst / "poses" / "00.txt").write_text("".join(f"{x}\n" for x in lines))
-    return dst
+SEEDS, SHORT_SEEDS = list(range(195, 205)), range(205, 215)
 
 
 def scenarios():
-    out = []
-    for s in SEEDS:
-        w = world(s)
-        p = w / "poses" / "00.txt"
-        out.append((f"kidnap {s}", "kidnap", [(w, range(0, 120), p), (w, range(265, 300), p)], 120, False))
-        out.append((f"short gap {s}", "short", [(w, range(0, 100), p), (w, range(108, 300), p)], 100, False))
-        w2 = world(s + 1 if s < 204 else 195)
-        out.append((f"foreign {s}->{s + 1 if s < 204 else 195}", "foreign", [(w, range(0, 150), None), (w2, range(150, 300), None)], 150, False))
-    for s in SHORT_SEEDS:  # 150-frame loops, the gaps of bench.tracking_loss's "other"
-        w = world(s, 150)
-        p = w / "poses" / "00.txt"
-        for a, b in ((40, 47), (90, 99)):
-            out.append((f"loop150 {s} drop {a}-{b - 1}", "short", [(w, range(0, a), p), (w, range(b, 150), p)], a, False))
+    out = per_seed(SEEDS) + loops150(SHORT_SEEDS)
     out.append(("real revisit 0013 d", "kidnap", [(K13, range(0, 143, 2), K13_POSES), (K13, range(1, 60, 2), K13_POSES)], 72, True))
     out.append(("real foreign 0001->0013 d", "foreign", [(K01, range(0, 54), None), (K13, range(80, 143, 2), None)], 54, True))
     return out
 
 
-def main(tag, out_path):
-    done = set()
-    if Path(out_path).is_file():
-        done = {json.loads(x)["name"] for x in Path(out_path).read_text().splitlines()}
-    for name, kind, parts, n1, kitti in scenarios():
-        if name in done:
-            continue
-        seq = compose(name.replace(" ", "_").replace(">", ""), parts)
-        out = WORK / f"{seq.name}_{tag}.txt"
-        flags = ("--preset", "kitti") if kitti else ("--model", RENDERED)
-        code, st = run(seq, out, *flags)
-        b = st.get("backend", {}) if st else {}
-        r = {"name": name, "kind": kind, "tag": tag, "code": code, "losses": st and st["tracking_losses"],
-             "relocalized_segments": b.get("relocalized_segments"), "loops": b.get("loops")}
-        if (seq / "poses" / "00.txt").is_file() and st:
-            gt, est = read_kitti_poses(seq / "poses" / "00.txt"), read_kitti_poses(out)
-            bad = set(st["pose_invalid_frame_indices"])
-            ok = [i for i in range(len(gt)) if i not in bad]
-            pre, post = [i for i in ok if i < n1], [i for i in ok if i >= n1]
-            S, _ = align_trajectory(est[pre], gt[pre])
-            d = np.linalg.norm(apply_to_poses(S, est)[post, :3, 3] - gt[post, :3, 3], axis=1)
-            r.update({"ate_all_m": _ate_se3_m(est[ok], gt[ok]), "post_err_mean_m": float(d.mean()),
-                      "post_err_max_m": float(d.max()), "n_post": len(post)})
-        print(json.dumps(r), flush=True)
-        with open(out_path, "a") as f:
-            f.write(json.dumps(r) + "\n")
-
-
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2])
+    main(sys.argv[1], sys.argv[2], scenarios)
