@@ -36,6 +36,7 @@ it is made. Without a map yet (a loss before anything was indexed) the segment k
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
@@ -123,6 +124,7 @@ class SegmentRelocalizer:
         """A new segment's first keyframe (at ``t0_ns``): snapshot the session's map for its queries."""
         self._segment, self._reloc, self._t0_ns = segment_id, None, t0_ns
         backend = self._pipeline.backend
+        t0 = time.perf_counter()
         try:
             saved = session_map(self._pipeline, None, metric=bool(backend.scale_established))
         except MapError as exc:
@@ -134,6 +136,8 @@ class SegmentRelocalizer:
         self._metric_map = bool(saved.metric)
         self._reloc = Relocalizer(saved, self.camera, self.config)
         self._reloc.bind(self._pipeline)
+        log.info("tracking segment %d: relocalizing in the session's map (%d keyframes, snapshot %.0f ms on the "
+                 "tracking thread)", segment_id, saved.n_keyframes, 1e3 * (time.perf_counter() - t0))
 
     def _place(self) -> None:
         """Relocalized: confirm the segment's link, or replace it (module docstring)."""
