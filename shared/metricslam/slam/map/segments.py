@@ -19,7 +19,9 @@ vocabulary, verification, matches of different keyframes that agree). Once they 
   (rotation, translation, scale), the link holds and nothing changes: the ordinary loop detector
   goes on as before (adding such relocalizations as loops moved short losses both ways,
   ``docs/history/rule_segment_reloc2_session23.md``);
-* otherwise the link is wrong (the camera was carried, or lost too long) — once
+* otherwise, after a loss longer than the link's coasting covers (``coast_max_s`` +
+  :data:`LOSS_MARGIN_S`; within it, the link holds and a contradiction is likelier a place that
+  looks like another), the link is wrong (the camera was carried, or lost too long) — once
   :data:`MIN_AGREEING_CONTRADICTING` matches agree, from keyframes at least :data:`MIN_SPAN_M`
   apart (early ones of window keyframes included), one of them in the global graph: the link is
   dropped, the segment's keyframes are moved where the relocalization puts them and joined to the
