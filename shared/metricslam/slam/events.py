@@ -205,7 +205,7 @@ class SegmentRelocalized:
     """Tracking segment ``segment_id`` (a new one after a tracking loss) was relocalized in the
     session's own map (:mod:`metricslam.slam.map.segments`) and moved there in the graph: its
     link to the previous segment replaced by ``n_loops`` loops; ``frame_index``: the frame being
-    processed when the last of the matches that placed it was verified."""
+    processed when it was placed."""
 
     segment_id: int
     frame_index: int

@@ -238,7 +238,7 @@ class GlobalBackend:
             **{k: counters.get(k, 0) for k in ("depth_requests", "depth_failures", "depth_dropped",
                                                "corrections", "segment_links", "segments_relocalized",
                                                "epoch_mismatches")},
-            "relocalized_segments": {str(k): v[0] for k, v in est.relocalized_segments.items()},
+            "relocalized_segments": {str(k): v for k, v in est.relocalized_segments.items()},
             "graph_rebuilds": est.graph.n_rebuilds,
             "graph_stabilized": est.graph.n_stabilized,
             "depth_ms_mean": self._depth_ms.mean_ms,

@@ -95,9 +95,9 @@ class GlobalEstimator:
         self.n_ground_factors = 0  # road-plane scale factors added to the graph
         self._pending_loops: list = []  # verified LoopCandidates waiting for the next solve
         self._pending_relinks: list = []  # (segment_id, S_map_world, frame, loops) for the next solve
-        #: segment id -> (frame index when it was relocalized, keyframes its loops joined): each
-        #: placed off its link by a relocalization in the session's own map (:meth:`relink_segment`)
-        self.relocalized_segments: dict[int, tuple[int, int]] = {}
+        #: segment id -> frame index when it was placed off its link by a relocalization in the
+        #: session's own map (:meth:`relink_segment`)
+        self.relocalized_segments: dict[int, int] = {}
         # loop queries wait for their keyframe's depth map (scale mode): keyframes in order,
         # finished depth requests (kf_id -> map or None on failure) and dropped request ids
         self._loop_waiting: collections.deque = collections.deque()
@@ -259,7 +259,7 @@ class GlobalEstimator:
                 rec = LoopRecord(old, new, self._records[old].frame_index, self._records[new].frame_index, n)
                 self.loops.append(rec)
                 self.events.emit(LoopAccepted(rec.kf_old, rec.kf_new, rec.frame_old, rec.frame_new, n))
-            self.relocalized_segments[seg] = (frame_now, len(joined))
+            self.relocalized_segments[seg] = frame_now
             self.events.emit(SegmentRelocalized(seg, frame_now, len(joined)))
             self.counters["segments_relocalized"] += 1
             log.info("tracking segment %d relocalized in the session's map at frame %d (%d loops in place "

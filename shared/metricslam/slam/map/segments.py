@@ -8,8 +8,10 @@ long loss, a robot carried or put down on a mapped street, a lens uncovered) tha
 tens of metres and degrees off, and an ordinary loop rarely fixes it: the loop gate measures a
 loop against the link's own uncertainty and refuses one that far off.
 
-So the new segment's keyframes are queried against a snapshot of the session's map, taken at its
-first keyframe (:func:`~metricslam.slam.map.localization.session_map`: every keyframe the back end
+So after a loss longer than the link's coasting covers (``coast_max_s`` + :data:`LOSS_MARGIN_S`;
+within it the link holds, and a contradiction is likelier a place that looks like another) the
+new segment's keyframes are queried against a snapshot of the session's map, taken at its first
+keyframe (:func:`~metricslam.slam.map.localization.session_map`: every keyframe the back end
 holds; metric once learned scale is established), exactly as a later session relocalizes into a
 saved map (:class:`~metricslam.slam.map.relocalizer.Relocalizer`: retrieval with the session's own
 vocabulary, verification, matches of different keyframes that agree). Once they agree:
@@ -19,9 +21,7 @@ vocabulary, verification, matches of different keyframes that agree). Once they 
   (rotation, translation, scale), the link holds and nothing changes: the ordinary loop detector
   goes on as before (adding such relocalizations as loops moved short losses both ways,
   ``docs/history/rule_segment_reloc2_session23.md``);
-* otherwise, after a loss longer than the link's coasting covers (``coast_max_s`` +
-  :data:`LOSS_MARGIN_S`; within it, the link holds and a contradiction is likelier a place that
-  looks like another), the link is wrong (the camera was carried, or lost too long) — once
+* otherwise the link is wrong (the camera was carried, or lost too long) — once
   :data:`MIN_AGREEING_CONTRADICTING` matches agree, from keyframes at least :data:`MIN_SPAN_M`
   apart (early ones of window keyframes included), one of them in the global graph: the link is
   dropped, the segment's keyframes are moved where the relocalization puts them and joined to the
@@ -96,9 +96,6 @@ class SegmentRelocalizer:
         self._scale_kf: dict[int, float] = {}  # map keyframe id -> its scale in the snapshot
         self._metric_map = False  # the snapshot was metric (learned scale established)
         self._t0_ns = 0  # the segment's first keyframe's time
-        #: segment id -> "relocalized" (moved off its link), "confirmed" (its link held), "short loss"
-        #: (contradicted, but the loss was shorter than ``min_loss_s``: the link held) or "no map"
-        self.outcomes: dict[int, str] = {}
 
     def attach(self, pipeline) -> None:
         """Watch ``pipeline``'s keyframes (a :class:`~metricslam.slam.pipeline.SlamPipeline` with a
@@ -123,14 +120,17 @@ class SegmentRelocalizer:
             self._reloc.on_event(ev)
 
     def _start(self, segment_id: int, t0_ns: int) -> None:
-        """A new segment's first keyframe (at ``t0_ns``): snapshot the session's map for its queries."""
+        """A new segment's first keyframe (at ``t0_ns``): snapshot the session's map for its queries
+        (none after a short loss: whatever they found, the link would stay)."""
         self._segment, self._reloc, self._t0_ns = segment_id, None, t0_ns
+        if self._loss_s < self.min_loss_s:
+            log.info("tracking segment %d after a %.1f s loss: its link's coasting covers it", segment_id, self._loss_s)
+            return
         backend = self._pipeline.backend
         t0 = time.perf_counter()
         try:
             saved = session_map(self._pipeline, None, metric=bool(backend.scale_established))
         except MapError as exc:
-            self.outcomes[segment_id] = "no map"
             log.info("tracking segment %d: nothing mapped to relocalize in yet (%s)", segment_id, exc)
             return
         kf = saved.arrays["keyframes"]
@@ -150,11 +150,9 @@ class SegmentRelocalizer:
         if S_map_world is None:
             return
         off = backend.estimator.link_offset_sigmas(self._segment, S_map_world)
-        if off <= LINK_CONTRADICTED_SIGMAS or self._loss_s < self.min_loss_s:
+        if off <= LINK_CONTRADICTED_SIGMAS:
             self._reloc = None  # the link holds: the ordinary loop detector takes it from here
-            self.outcomes[self._segment] = "confirmed" if off <= LINK_CONTRADICTED_SIGMAS else "short loss"
-            log.info("tracking segment %d: relocalized %.1f of its link's sigmas off it after a %.1f s loss: "
-                     "the link stays", self._segment, off, self._loss_s)
+            log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)", self._segment, off)
             return
         agreeing = reloc.agreeing(S_map_world, poses, metric)  # window keyframes' early matches too
         p_map = np.array([reloc.map_position_m(m) for m in agreeing]).reshape(-1, 3)
@@ -173,7 +171,6 @@ class SegmentRelocalizer:
             loops.append((m.map_kf_id, m.kf_frame, sim3.from_rts(R, t / s_old, s / s_old), sig, m.n_inliers))
         frame = self._pipeline.frame_now  # placed while processing it (inline), or just after
         backend.estimator.relink_segment(self._segment, S_map_world, frame, loops)
-        self.outcomes[self._segment] = "relocalized"
         R, t, s = sim3.split(S_map_world)
         log.warning("tracking segment %d relocalized in the session's map at frame %d: moved %.1f m, "
                     "%.1f deg, scale x%.3f from where its link put it (%d matches agree)", self._segment,
