@@ -34,7 +34,7 @@ from metricslam.geometry import sim3
 from metricslam.slam.events import Solved
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.map.format import SavedMap, load_map, save_map
-from metricslam.slam.map.relocalizer import MIN_AGREEING_MATCHES, Relocalizer, to_map_frame
+from metricslam.slam.map.relocalizer import MIN_AGREEING_MATCHES, Relocalizer, agree_at, to_map_frame
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,11 @@ MIN_LIVE_MATCHES = MIN_AGREEING_MATCHES
 #: (KITTI raw 0013: ~14 % over frames 35-60), and a rigid S_map_world before then put the live
 #: poses metres off (``MapLocalization.S_map_world_live``)
 LIVE_RIGID_LOG_SCALE = 0.01
+#: until then (not rigid), the live alignment's scale and translation are fitted to where the
+#: agreeing matches place their keyframes in the map once this many place them this far apart
+#: (metres from their centroid): one view's network depth reads the scale ±10-20 %, positions
+#: spread along the path read it within a few per cent (``docs/history/rule_live_map_early_session24.md``)
+LIVE_SPAN_MIN_MATCHES, LIVE_SPAN_MIN_M = 3, 5.0
 
 
 def open_map(path: str | Path, camera: PinholeCamera, depth_model_id: str | None) -> SavedMap:
@@ -107,7 +112,7 @@ class MapLocalization:
                  path: str | Path = "map") -> None:
         self.saved = saved
         self.path = str(path)
-        self.relocalizer = Relocalizer(saved, camera, config)
+        self.relocalizer = Relocalizer(saved, camera, config, early_after_relocalized=True)
         self._backend = None
         self._lock = threading.Lock()
         self._dirty = threading.Event()  # a solve finished since refresh()
@@ -116,7 +121,8 @@ class MapLocalization:
         #: what the live poses are mapped by (:class:`MapFrameSession`): :attr:`S_map_world`, except
         #: for a session placed before its learned scale was established, which keeps the
         #: network-depth (non-rigid) estimate against the graph of the moment until it agrees with
-        #: rigid (:data:`LIVE_RIGID_LOG_SCALE`); the final trajectory always uses :attr:`S_map_world`
+        #: rigid (:data:`LIVE_RIGID_LOG_SCALE`), its scale fitted to the matches' spread until then
+        #: (:meth:`_span_fitted`); the final trajectory always uses :attr:`S_map_world`
         self.S_map_world_live: np.ndarray | None = None
         self._live_rigid = False
         self.matches_used = 0
@@ -152,12 +158,39 @@ class MapLocalization:
                 self._live_rigid = True
             else:
                 S_live = S_pre
+        if S_live is not None and (not metric or S_live is not S):
+            S_live = self._span_fitted(S_live, poses)
         with self._lock:
             self._n_matches = n
             if S is not None:
                 self.S_map_world, self.matches_used, self.matches_rejected = S, used, rejected
                 self.S_map_world_live = S_live
             return self.S_map_world
+
+    def _span_fitted(self, S_live: np.ndarray, poses: dict[int, np.ndarray]) -> np.ndarray:
+        """``S_live`` (4, 4) with its scale and translation fitted (least squares, its rotation
+        kept: a fitted one is unobservable about the direction of travel on a straight street) to
+        where the matches that agree with it place their keyframes in the map, once
+        :data:`LIVE_SPAN_MIN_MATCHES` of them span :data:`LIVE_SPAN_MIN_M`; else ``S_live``."""
+        reloc = self.relocalizer
+        p_map, p_world = [], []
+        for m, S in reloc.candidates(poses, metric_world=False):
+            p = reloc.map_position_m(m)
+            q = sim3.transform_points(sim3.inverse(S), p[None])  # the keyframe in the world: S·q = p
+            if agree_at(S_live, S, q, metric_world=False):
+                p_map.append(p)
+                p_world.append(q[0])
+        if len(p_map) < LIVE_SPAN_MIN_MATCHES:
+            return S_live
+        p_map, p_world = np.array(p_map), np.array(p_world)
+        if np.linalg.norm(p_map - p_map.mean(axis=0), axis=1).max() < LIVE_SPAN_MIN_M:
+            return S_live
+        R = sim3.split(S_live)[0]
+        a, b = (p_world - p_world.mean(axis=0)) @ R.T, p_map - p_map.mean(axis=0)
+        s = float(np.sum(a * b) / np.sum(a * a))
+        if not (np.isfinite(s) and s > 0):
+            return S_live
+        return sim3.from_rts(R, p_map.mean(axis=0) - s * R @ p_world.mean(axis=0), s)
 
     def map_trajectory(self, trajectory: list[PoseEstimate]) -> list[PoseEstimate]:
         """The poses from :attr:`first_frame` on, in the map frame (empty: not relocalized)."""

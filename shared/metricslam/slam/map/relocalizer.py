@@ -1,20 +1,18 @@
 """``Relocalizer``: puts a new session into a saved map (``docs/maps.md``), then into its frame.
 
-Until the session has relocalized (:data:`EARLY_MATCHES` verified matches), every keyframe is also
-queried as soon as a newer keyframe observed it (:class:`~metricslam.slam.events.KeyframeSettled`),
-long before it leaves the VO window: with the depth source's answer for it (asked there, bounded
-wait; without one, its landmarks alone carry the scale), its pose ``S_world_kf`` the
-window's of that moment, carried through every later warp of the VO
-(:meth:`~metricslam.slam.vo.window.SlidingWindow.warp_since`) until the back end has the keyframe.
-Every keyframe the session marginalizes is a query (:class:`~metricslam.slam.events.KeyframeMarginalized`;
-in scale mode once its depth answer arrived, :class:`~metricslam.slam.events.ScaleMeasured`):
-ORB retrieval descriptors → bag-of-words with the *map's* vocabulary → cosine scores against
-the map's rows → the best ``n_candidates`` are verified as the loop detector verifies a loop
-(:func:`metricslam.slam.loop.corners.verify_corners`: essential-matrix check, PnP of the
+Until the session has relocalized (:data:`EARLY_MATCHES` verified matches; optionally a few more
+after, :data:`EARLY_AFTER_QUERIES`), every keyframe is also queried as soon as a newer keyframe
+observed it (:class:`~metricslam.slam.events.KeyframeSettled`), long before it leaves the VO
+window: with the depth source's answer for it (asked there, bounded wait; without one, its
+landmarks alone carry the scale), its pose ``S_world_kf`` the window's of that moment, carried
+through every later warp of the VO (:meth:`~metricslam.slam.vo.window.SlidingWindow.warp_since`)
+until the back end has the keyframe. Every keyframe the session marginalizes is a query (in scale
+mode once its depth answer arrived): ORB retrieval descriptors → bag-of-words with the *map's*
+vocabulary → cosine scores against the map's rows → the best ``n_candidates`` verified as a loop
+is (:func:`metricslam.slam.loop.corners.verify_corners`: essential-matrix check, PnP of the
 keyframe's pixels against the map keyframe's metric 3-D corners, scale from the network depth of
-the keyframe's own corners, its VO units), with the keyframe's ORB corners and VO landmarks.
-Without learned scale (no depth answers) the VO landmarks alone are verified
-(:func:`metricslam.slam.loop.verification.verify`).
+the keyframe's own corners, its VO units; without depth answers its VO landmarks alone,
+:func:`metricslam.slam.loop.verification.verify`).
 A verified match gives ``S_mapkf_kf`` (metres per session-keyframe VO unit), hence
 
     S_map_world = T_map_mapkf · S_mapkf_kf · S_world_kf⁻¹
@@ -70,6 +68,10 @@ MIN_AGREEING_MATCHES = 2
 #: the session is relocalized; each asks the depth source for the keyframe (waiting at most this
 #: long, on the tracking thread)
 EARLY_MATCHES, EARLY_DEPTH_TIMEOUT_S = 6, 1.0
+#: with ``early_after_relocalized`` they go on after it (the live poses' alignment needs matches
+#: spread along the path before the keyframes reach the graph) until this many marginalized
+#: keyframes' matches were recorded since, at most this many more queries
+EARLY_AFTER_MATCHES, EARLY_AFTER_QUERIES = 3, 12
 
 
 @dataclass(frozen=True)
@@ -96,10 +98,11 @@ class Relocalizer:
         camera: the session's camera (checked against the map's by the caller).
         config: loop parameters (retrieval ORB, verification thresholds, ``n_candidates``).
         seed: RANSAC seed (deterministic given the same keyframes).
+        early_after_relocalized: early queries go on after relocalization (:data:`EARLY_AFTER_QUERIES`).
     """
 
     def __init__(self, saved: SavedMap, camera: PinholeCamera, config: LoopConfig | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, early_after_relocalized: bool = False) -> None:
         self.config = config or LoopConfig()
         self.camera = camera
         kf, db = saved.arrays["keyframes"], saved.arrays["loop_db"]
@@ -127,6 +130,8 @@ class Relocalizer:
         self._backend = None  # the session's back end (its latest solve), once attached
         self.matches: list[RelocMatch] = []
         self.version = 0  # bumped whenever ``matches`` changes (a new list each time)
+        self._early_left = EARLY_AFTER_QUERIES if early_after_relocalized else 0  # after relocalization
+        self._late_matches = 0  # marginalized keyframes' matches recorded after relocalization
         #: keyframe frame index -> its bag-of-words row (K,) in the MAP's vocabulary (a merged map
         #: indexes the session's keyframes with them, :mod:`metricslam.slam.map.merge`)
         self.bow_by_frame: dict[int, np.ndarray] = {}
@@ -152,7 +157,9 @@ class Relocalizer:
         """Query the keyframe of a ``KeyframeSettled`` / ``KeyframeMarginalized`` event (or of the
         ``ScaleMeasured`` its query waited for)."""
         if isinstance(ev, KeyframeSettled):
-            if self.first_frame is None and len(self.matches) < EARLY_MATCHES:
+            after = self.first_frame is not None and self._early_left > 0 and self._late_matches < EARLY_AFTER_MATCHES
+            if after or (self.first_frame is None and len(self.matches) < EARLY_MATCHES):
+                self._early_left -= after
                 kf = ev.keyframe
                 inv_depth = (None if self._depth_source is None else
                              ask_depth(self._depth_source, kf.image, kf.camera, EARLY_DEPTH_TIMEOUT_S)[0])
@@ -173,6 +180,7 @@ class Relocalizer:
                 return
             match = self.query(got[0], got[1], ev.inv_depth_map_per_m)
         if match is not None:
+            self._late_matches += self.first_frame is not None
             self._record(match)
 
     def _record(self, match: RelocMatch) -> None:
@@ -184,9 +192,8 @@ class Relocalizer:
         self.version += 1
         if self.first_frame is None and (agree := self._agreeing()) >= MIN_AGREEING_MATCHES:
             self.first_frame = match.frame_now
-            log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d "
-                     "(%d inliers; %d matches agree)", match.frame_now, match.kf_frame, match.map_kf_id,
-                     match.n_inliers, agree)
+            log.info("relocalized into the map at frame %d: keyframe %d matches map keyframe %d (%d inliers; "
+                     "%d matches agree)", match.frame_now, match.kf_frame, match.map_kf_id, match.n_inliers, agree)
 
     def _agreeing(self) -> int:
         """How many matches agree with their medoid against the back end's latest solve."""
@@ -195,8 +202,7 @@ class Relocalizer:
         return self.S_map_world(poses, metric_world=metric)[1]
 
     def _settle(self, kf) -> None:
-        """``kf`` leaves the VO window: re-express its early match in the VO units it is
-        handed to the back end in (every warp since the query scaled them by ``s``)."""
+        """``kf`` leaves the VO window: its early match in the VO units the back end gets it in."""
         for k, m in enumerate(self.matches):
             if m.kf_frame == int(kf.frame_index) and m.S_world_kf_vo is not None:
                 W = self._window.warp_since(m.warp_generation)
