@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from metricslam.camera import PinholeCamera
 from metricslam.geometry import se3, sim3, so3
-from metricslam.slam.events import EventBus, KeyframeSettled, ScaleMeasured
-from metricslam.slam.map.relocalizer import RelocMatch, Relocalizer
+from metricslam.slam.events import EventBus, KeyframeMarginalized, KeyframeSettled, ScaleMeasured
+from metricslam.slam.map.relocalizer import EARLY_AFTER_MATCHES, EARLY_AFTER_QUERIES, RelocMatch, Relocalizer
 from metricslam.slam.types import MarginalizedKeyframe
 from metricslam.slam.vo.config import VOConfig
 from metricslam.slam.vo.window import SlidingWindow
@@ -22,11 +22,13 @@ from metricslam.slam.vo.window import SlidingWindow
 CAMERA = PinholeCamera(fx_px=700.0, fy_px=700.0, cx_px=320.0, cy_px=180.0, width_px=640, height_px=360)
 
 
-def _bare_relocalizer(window: SlidingWindow, T_map_mapkf: np.ndarray) -> Relocalizer:
+def _bare_relocalizer(window: SlidingWindow, T_map_mapkf: np.ndarray, early_after: bool = False) -> Relocalizer:
     r = Relocalizer.__new__(Relocalizer)  # no saved map needed for the bookkeeping under test
     r._T_map_kf = {7: T_map_mapkf}
     r._window, r._backend = window, None
     r.matches, r.version, r.first_frame, r._metric_map = [], 0, None, True
+    r._depth_source, r._with_depth, r._waiting = None, False, {}
+    r._early_left, r._late_matches = (EARLY_AFTER_QUERIES if early_after else 0), 0
     return r
 
 
@@ -116,3 +118,40 @@ def test_before_metric_scale_two_matches_agree_on_where_they_place_the_keyframes
     assert r.S_map_world({}, metric_world=False)[1] == 2  # 0.8 m apart at kf_a, 1.2 m at kf_b
     r.matches = [match(3, kf_a, 2.0), match(5, kf_b, 2.0, shift=2.5)]
     assert r.S_map_world({}, metric_world=False)[1] == 1  # 2.5 m apart wherever they are applied
+
+
+
+def _early_queries(early_after: bool, matching: bool) -> list[int]:
+    """Keyframe k settles at frame 2k and is marginalized 10 keyframes later; the second early
+    match relocalizes; after relocalization queries verify only when ``matching``. Returns the
+    keyframes queried early."""
+    window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
+    r = _bare_relocalizer(window, np.eye(4), early_after)
+    asked: list[tuple[int, bool]] = []
+
+    def query(kf, frame_now, inv_depth_map=None, early=False):
+        asked.append((int(kf.frame_index), early))
+        if early and r.first_frame is None and len(asked) == 2:
+            r.first_frame = frame_now
+        ok = matching or r.first_frame is None
+        return RelocMatch(7, int(kf.frame_index), frame_now, np.eye(4), 50, 1.0) if ok else None
+
+    r.query, r._record = query, lambda m: None
+    for k in range(40):
+        r.on_event(KeyframeSettled(_kf(k, np.eye(4)), 2 * k, 0))
+        if k >= 10:
+            r.on_event(KeyframeMarginalized(_kf(k - 10, np.eye(4)), 2 * k))
+    return [f for f, early in asked if early]
+
+
+def test_after_relocalization_early_queries_go_on_until_marginalized_keyframes_match_or_their_budget_ends():
+    """The live alignment needs matches spread along the path before the session's keyframes reach
+    the graph (~20 frames on KITTI): with ``early_after_relocalized`` window keyframes are still
+    queried after relocalization, until :data:`EARLY_AFTER_MATCHES` marginalized keyframes matched
+    since, at most :data:`EARLY_AFTER_QUERIES` queries (a session that left the map stops paying).
+    Without it (a tracking segment's relocalizer) they stop at relocalization, as before."""
+    # keyframe EARLY_AFTER_MATCHES - 1 is the last marginalized match needed: it leaves the window
+    # right after keyframe 10 + EARLY_AFTER_MATCHES - 1 settled, the last one queried early
+    assert _early_queries(True, True) == list(range(min(10 + EARLY_AFTER_MATCHES, 2 + EARLY_AFTER_QUERIES)))
+    assert _early_queries(True, False) == list(range(2 + EARLY_AFTER_QUERIES))
+    assert _early_queries(False, True) == [0, 1]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from metricslam.geometry import sim3
-from metricslam.slam.map.localization import LIVE_RIGID_LOG_SCALE, MapLocalization
+from metricslam.slam.map.localization import LIVE_RIGID_LOG_SCALE, LIVE_SPAN_MIN_M, MapLocalization
 from tests.test_map_format import CAMERA, random_map
 
 RIGID = sim3.from_rts(np.eye(3), np.array([1.0, 0.0, 2.0]), 1.0)
@@ -25,10 +25,20 @@ class _Relocalizer:
 
     def __init__(self) -> None:
         self.version, self.pre_scale = 1, 1.19
+        self.placed: list[tuple[np.ndarray, np.ndarray]] = []  # (world, map) position of each match's keyframe
 
     def S_map_world(self, poses, metric_world: bool = False):
         S = RIGID if metric_world else sim3.from_rts(np.eye(3), np.array([1.0, 0.0, 2.0]), self.pre_scale)
         return S, 2, 0
+
+    def candidates(self, poses, metric_world: bool = False):
+        """Each match: the S_map_world it implies, its scale the one view's (pre_scale), its
+        position where it places its keyframe (S · p_world = p_map)."""
+        return [(p_map, sim3.from_rts(np.eye(3), p_map - self.pre_scale * p_world, self.pre_scale))
+                for p_world, p_map in self.placed]
+
+    def map_position_m(self, m):
+        return m
 
 
 class _Backend:
@@ -64,3 +74,26 @@ def test_placed_in_a_metric_world_the_live_poses_are_rigid_at_once() -> None:
     loc, _, _ = _localization(established=True)
     loc.refresh()
     assert np.allclose(loc.S_map_world_live, RIGID) and np.allclose(loc.S_map_world, RIGID)
+
+
+def test_until_it_is_rigid_the_live_alignment_takes_its_scale_from_where_the_matches_place_the_keyframes():
+    """Each match's scale is one view's network depth (here 1.19, the map's metres say 1.25), but
+    matches spread along the path place their keyframes in the map 1.25 world units apart per unit:
+    once 3 span LIVE_SPAN_MIN_M the live alignment's scale and translation are fitted to those
+    positions (its rotation kept); over a shorter spread, or once rigid, it is left alone. The
+    finished trajectory's S_map_world never is (rule_live_map_early_session24.md)."""
+    loc, reloc, backend = _localization(established=False)
+    origin = np.array([1.0, 0.0, 2.0])
+    along = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.5], [0.3, 0.0, 3.0]])  # world units along the street
+    reloc.placed = [(p, origin + 1.25 * p) for p in along]  # 1.9 m from their centroid: too close
+    loc.refresh(force=True)
+    assert np.isclose(sim3.scale(loc.S_map_world_live), 1.19)
+    span = 1.2 * LIVE_SPAN_MIN_M / 1.25
+    reloc.placed = [(p, origin + 1.25 * p) for p in along * span / 1.5]
+    loc.refresh(force=True)
+    S = loc.S_map_world_live
+    assert np.isclose(sim3.scale(S), 1.25) and np.allclose(sim3.transform_points(S, along), origin + 1.25 * along)
+    assert np.isclose(sim3.scale(loc.S_map_world), 1.19)  # the finished trajectory's: the matches' robust mean
+    backend.scale_established, reloc.pre_scale = True, 1.0 + 0.5 * LIVE_RIGID_LOG_SCALE  # rigid now
+    loc.refresh(force=True)
+    assert np.allclose(loc.S_map_world_live, RIGID)
