@@ -22,7 +22,8 @@ What must hold (no alignment of session 2 to anything):
 * the live ``…/pose`` stream in the map frame within 10 m RMSE (unmapped it would be ~40 m off):
   each live pose is mapped by the S_map_world of the matches verified so far, and the back end
   (depth answers, relocalization queries, solves) lags the frames by ~15 frames on this loaded
-  machine; measured ~7 m (docs/maps.md "Not done yet");
+  machine; measured 5.4 m (~7 m before session 24 fitted the live alignment's scale to the
+  matches' spread; docs/maps.md "Not done yet");
 * ``…/map/save`` writes the loaded map extended by the session (``tests/test_map_extend.py`` has
   the offline round trip); a save that fails half-way leaves the previous map byte for byte; a
   bad path is one error line, and the service goes on;
