@@ -2,8 +2,7 @@
 latency and map-frame accuracy on a rendered revisit and on KITTI odometry 06.
 
 * **Size and I/O**: the rendered revisit's session-1 map, its keyframes tiled (new ids, same
-  content) to 1,000 keyframes, saved and loaded ``--repeats`` times (median wall time; bytes on
-  disk).
+  content) to 1,000 keyframes, saved and loaded ``--repeats`` times (median wall time; bytes).
 * **Rendered revisit** (``tests/test_map_relocalize.py``'s setup): loop render (300 frames, seed 3,
   620x188); session 1 = frames 0-149 ``--save-map``; session 2 = frames 190-299 ``--map`` (starts
   outside the map). The frame it relocalized at vs. the first within 10 m of the mapped path; map-frame
@@ -49,16 +48,17 @@ KITTI06_POSES = Path("../shared/data/kitti_odometry/poses/06.txt")
 
 
 def cut(src: Path, dst: Path, start: int, stop: int, poses: Path | None = None, skip: range = range(0)) -> Path:
-    """Frames ``start .. stop-1`` but ``skip`` of a KITTI-layout folder as a new folder,
+    """Frames ``start .. stop-1`` but ``skip`` of a KITTI-layout folder (PNG or JPEG) as a new folder,
     renumbered from 0 (``poses/00.txt`` cut from ``poses`` or from the source's own)."""
     dst.mkdir(parents=True, exist_ok=True)
+    ext = "jpg" if (src / "image_0" / f"{start:06d}.jpg").is_file() else "png"
     frames = [i for i in range(start, stop) if i not in skip]
     shutil.copy(src / "calib.txt", dst / "calib.txt")
     for sub in ("image_0", "image_1", "depth_0"):
         if (src / sub).is_dir():
             (dst / sub).mkdir(exist_ok=True)
             for j, i in enumerate(frames):
-                shutil.copy(src / sub / f"{i:06d}.png", dst / sub / f"{j:06d}.png")
+                shutil.copy(src / sub / f"{i:06d}.{ext}", dst / sub / f"{j:06d}.{ext}")
     times = (src / "times.txt").read_text().split()
     (dst / "times.txt").write_text("".join(f"{times[i]}\n" for i in frames))
     poses = poses or src / "poses" / "00.txt"

@@ -1,21 +1,10 @@
 """Validation sessions of rule_live_map_early_session24.md (session-1 maps at HEAD, session-2 folders)."""
-import json, shutil, sys
+import json, sys
 from pathlib import Path
 sys.path.insert(0, "/work/main")
-from bench.maps import cut as cut_png, run, RENDERED
+from bench.maps import cut, run, RENDERED  # cut: PNG or JPEG (raw 1405)
 from metricslam.synth.scene import generate_sequence
 V = Path("/tmp/s24/val"); V.mkdir(parents=True, exist_ok=True); D = Path("/work/shared/data")
-def cut(src, dst, start, stop):
-    if (src / "image_0" / "000000.png").is_file():
-        return cut_png(src, dst, start, stop)
-    dst.mkdir(parents=True, exist_ok=True); shutil.copy(src / "calib.txt", dst / "calib.txt")
-    for sub in ("image_0", "image_1"):
-        (dst / sub).mkdir(exist_ok=True)
-        for j, i in enumerate(range(start, stop)):
-            shutil.copy(src / sub / f"{i:06d}.jpg", dst / sub / f"{j:06d}.jpg")
-    times = (src / "times.txt").read_text().split()
-    (dst / "times.txt").write_text("".join(f"{times[i]}\n" for i in range(start, stop)))
-    return dst
 sessions = []
 def real(name, mapname, src, m_start, m_stop, s_start, s_stop):
     s1 = cut(src, V / f"{mapname}_s1", m_start, m_stop)

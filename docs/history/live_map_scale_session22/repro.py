@@ -81,4 +81,4 @@ json.dump({"used": used_log, "flags": est_flags, "corrections": pipe._scale_hist
           open(a.out.replace(".npz", ".json"), "w"))
 print(json.dumps({"wall_s": wall, "events": events, "first_frame": loc.first_frame,
                   "first_map_frame": mfs.first_map_frame, "matches": len(loc.relocalizer.matches),
-                  "used": loc.matches_used, "load": os.getloadavg()}))
+                  "used": loc.matches_used, "n_queries": loc.relocalizer.n_queries, "query_ms_mean": float(np.mean(loc.relocalizer.query_ms)) if loc.relocalizer.query_ms else None, "load": os.getloadavg()}))  # n_queries, query_ms_mean: added in session 24
