@@ -71,12 +71,16 @@ def test_mcap_log_names_the_parent_frame_as_the_ros2_bridge_does(tmp_path: Path)
 
 class _ShiftLocalization:
     """Stands in for the run's :class:`MapLocalization` after it relocalized at frame 2: the map
-    frame is the world moved :data:`SHIFT_M` along x (what ``MapRun.finish`` would write)."""
+    frame is the world moved :data:`SHIFT_M` along x (what ``MapRun.finish`` would write), and
+    scaled by ``scale`` (1: a metric world, rigidly in the map)."""
 
     first_frame = 2
 
+    def __init__(self, scale: float = 1.0) -> None:
+        self.scale = scale
+
     def refresh(self, force: bool = False) -> np.ndarray:
-        S = np.eye(4)
+        S = np.diag([self.scale] * 3 + [1.0])
         S[0, 3] = SHIFT_M
         return S
 
@@ -85,19 +89,23 @@ class _ShiftLocalization:
                 for e in trajectory if e.frame_index >= self.first_frame]
 
 
-def test_run_mcap_with_a_map_labels_the_final_map_frame_path_map(tmp_path: Path) -> None:
+def _record_run(path: Path, localization: _ShiftLocalization) -> dict:
     from metricslam.ros2.mcap_log import McapLog
     from metricslam.ros2.session_log import SessionRecorder
 
     session = IdentitySession()
-    with McapLog(tmp_path / "run.mcap", camera_id="cam0") as log:
-        recorder = SessionRecorder(log, session, _ShiftLocalization())
+    with McapLog(path, camera_id="cam0") as log:
+        recorder = SessionRecorder(log, session, localization)
         for i in range(5):
             frame = Frame(index=i, t_ns=1_000 + i, image=None, camera=None)
             recorder.after_frame(frame, session.process(frame))
         session.close()
         recorder.close()
-    topics = read_mcap(tmp_path / "run.mcap")
+    return read_mcap(path)
+
+
+def test_run_mcap_with_a_map_labels_the_final_map_frame_path_map(tmp_path: Path) -> None:
+    topics = _record_run(tmp_path / "run.mcap", _ShiftLocalization())
     assert _parents(topics, "/metricslam/cam0/pose") == ["cam0/world"] * 5  # live: the session's world
     paths = topics["/metricslam/cam0/path"]
     assert [CdrReader(m[2]).header()[2] for m in paths[-2:]] == ["cam0/world", "map"]
@@ -109,6 +117,21 @@ def test_run_mcap_with_a_map_labels_the_final_map_frame_path_map(tmp_path: Path)
         stamps.append(r.header()[:2])
         xs.append(r.pose()[0])
     assert n == 3 and xs == [SHIFT_M] * 3  # frames 2..4, in the map frame: the --out trajectory
+
+
+def test_run_mcap_with_a_map_places_the_world_frame_in_the_map_when_it_is_metric(tmp_path: Path) -> None:
+    """The live poses were recorded in the session's world: one ``/tf_static`` ``map`` ->
+    ``cam0/world`` (the final S_map_world, stamped at the first frame) shows them in the map beside
+    the map-frame path. A world in VO units (S_map_world not rigid) gets none: a TF cannot scale."""
+    topics = _record_run(tmp_path / "run.mcap", _ShiftLocalization())
+    (log_time, _, raw, *_), = topics["/tf_static"]
+    r = CdrReader(raw)
+    assert r.u32() == 1
+    sec, nanosec, parent = r.header()
+    assert (parent, r.string()) == ("map", "cam0/world") and sec * 10**9 + nanosec == log_time == 1_000
+    np.testing.assert_allclose(r.f64s(3), [SHIFT_M, 0.0, 0.0])
+    np.testing.assert_allclose(np.abs(r.f64s(4)), [0.0, 0.0, 0.0, 1.0])  # no rotation
+    assert "/tf_static" not in _record_run(tmp_path / "vo_units.mcap", _ShiftLocalization(scale=2.0))
 
 
 def test_the_store_keeps_the_frame_id_and_reads_old_lines_as_world(tmp_path: Path) -> None:

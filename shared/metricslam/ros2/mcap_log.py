@@ -49,6 +49,8 @@ class McapTopics:
         landmarks: ``/metricslam/<tok>/landmarks`` sensor_msgs/PointCloud2 (x, y, z float32).
         tf: ``/tf`` tf2_msgs/TFMessage, ``<tok>/world`` (or ``map``) -> ``<tok>/camera_optical``
             every frame.
+        tf_static: ``/tf_static`` tf2_msgs/TFMessage, ``map`` -> ``<tok>/world`` once, when a
+            session placed in a map is rigidly in it (:meth:`McapLog.map_to_world`).
         scale: ``/metricslam/<tok>/scale/<name>`` per keyframe scale record (:meth:`McapLog.scale_health`):
             ``learned``, ``ground`` (m per keyframe VO unit), ``disagreement_log``
             (log learned / ground), ``learned_spread_log``, ``sigma_log`` (the back end's σ of
@@ -65,7 +67,7 @@ class McapTopics:
         self.camera_info = f"{base}/keyframe/camera_info"
         self.depth = f"{base}/keyframe/depth/image"
         self.depth_info = f"{base}/keyframe/depth/camera_info"
-        self.tf = "/tf"
+        self.tf, self.tf_static = "/tf", "/tf_static"
         self.scale = {name: f"{base}/scale/{name}" for name in SCALE_RECORD_VALUES + ("warning",)}
         self.camera_id = camera_id
         self.world_frame, self.camera_frame = frame_ids(camera_id)
@@ -121,6 +123,14 @@ class McapLog:
         (``"world"`` or ``"map"``, :meth:`pose`)."""
         tp = self.topics
         self.write(tp.path, messages.path(stamps_ns, T_world_cam, t_ns, tp.parent(frame_id)), t_ns)
+
+    def map_to_world(self, t_ns: int, T_map_world: np.ndarray) -> None:
+        """The session's world (4, 4 rigid, m) in the map it relocalized into, on ``/tf_static``
+        (parent ``map``, child ``<tok>/world``): the poses, paths and clouds recorded in the world
+        frame then show in the map beside those recorded in it. Logged at ``t_ns`` (the first
+        frame's, so a player has it from the start)."""
+        tp = self.topics
+        self.write(tp.tf_static, messages.tf_message(T_map_world, t_ns, tp.parent("map"), tp.world_frame), t_ns)
 
     def keyframe_image(self, t_ns: int, pixels: np.ndarray, camera: PinholeCamera | None) -> None:
         """A keyframe image, JPEG-compressed (gray or RGB), and its CameraInfo (when known)."""

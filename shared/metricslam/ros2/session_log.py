@@ -11,7 +11,9 @@ Frames: every pose, path and landmark cloud written while the session runs is in
 frame (parent ``<cam>/world``): ``run --map`` places the session in the map only after the run.
 With a ``localization`` (``run --mcap --map``) that relocalized, :meth:`SessionRecorder.finish`
 writes one more, last path: the trajectory ``run`` writes to ``--out``, in the map frame (from
-the first localized frame on; parent frame ``map``).
+the first localized frame on; parent frame ``map``), and — when the session's world is metric, so
+``S_map_world`` is rigid — the ``map`` -> ``<cam>/world`` transform on ``/tf_static``, stamped at
+the first frame: everything recorded in the world frame shows in the map, as ``--out`` places it.
 
 Example (what ``metricslam run SEQ --mcap run.mcap`` does)::
 
@@ -31,6 +33,7 @@ import threading
 import numpy as np
 
 from metricslam.datasets.base import Frame
+from metricslam.geometry import se3, sim3
 from metricslam.ros2.mcap_log import McapLog
 from metricslam.slam.events import LoopAccepted, ScaleHealthUpdated, ScaleMeasured, Solved, WarpApplied, scale_record
 from metricslam.slam.map.localization import MAP_FRAME
@@ -38,6 +41,10 @@ from metricslam.slam.pipeline import window_landmarks_world
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
+
+#: |log scale| of ``S_map_world`` under which the session's world is rigidly in the map (a metric
+#: world's alignment is rigid by construction, :meth:`Relocalizer.S_map_world`)
+RIGID_LOG_SCALE = 1e-6
 
 
 def valid_trajectory(session: object) -> tuple[np.ndarray, np.ndarray]:
@@ -70,6 +77,7 @@ class SessionRecorder:
         self.session = session
         self._localization = localization
         self._path_dirty = threading.Event()
+        self._first_t_ns: int | None = None
         self._last_t_ns = 0
         self._camera = None
         backend = getattr(session, "backend", None)
@@ -94,6 +102,7 @@ class SessionRecorder:
         """Log one processed frame: its pose; at a keyframe its image and the window's
         landmarks; the optimized path when a keyframe or a global solve changed it."""
         self._last_t_ns = max(self._last_t_ns, int(est.t_ns))
+        self._first_t_ns = int(est.t_ns) if self._first_t_ns is None else self._first_t_ns
         if frame.camera is not None:
             self._camera = frame.camera  # the keyframes' intrinsics, for their depth grids' CameraInfo
         self.log.pose(est.t_ns, est.T_world_cam)
@@ -121,14 +130,20 @@ class SessionRecorder:
         if self._localization is None:
             return
         try:
-            mapped = (self._localization.map_trajectory(trajectory)  # with the final solve's S_map_world
-                      if self._localization.refresh(force=True) is not None else [])
+            S_map_world = self._localization.refresh(force=True)  # the final solve's
+            mapped = self._localization.map_trajectory(trajectory) if S_map_world is not None else []
         except Exception:  # noqa: BLE001 -- a run failing half way still gets its file closed
             log.exception("mcap: the final path in the map frame could not be estimated")
             return
         t_ns, T_map_cam = valid_poses(mapped)
         if len(t_ns):
             self.log.path(self._last_t_ns, t_ns, T_map_cam, frame_id=MAP_FRAME)
+            R, t, s = sim3.split(np.asarray(S_map_world, float))
+            if abs(np.log(s)) < RIGID_LOG_SCALE:
+                self.log.map_to_world(self._first_t_ns or 0, se3.from_rt(R, t))
+            else:  # a world in VO units (learned scale never established): no rigid transform
+                log.info("mcap: no map -> world transform: the session's world is not metric "
+                         "(S_map_world scale %.4f)", s)
 
     def close(self) -> None:
         """:meth:`finish`, then close the file (whatever happened: a run that failed half way
