@@ -10,7 +10,8 @@ trajectory (:meth:`MapLocalization.map_trajectory`); the live service wraps the 
 :class:`MapFrameSession`, which refreshes after each frame and publishes every pose from then on
 as the rigid ``T_map_cam`` (frame id ``"map"``), mapped by ``S_map_world_live``: a session placed
 before its learned scale was established keeps the network-depth alignment until it agrees with
-rigid (:data:`LIVE_RIGID_LOG_SCALE`). Frames and units: ``docs/conventions.md``;
+rigid (:data:`LIVE_RIGID_LOG_SCALE`), its scale meanwhile fitted to where the matches place their
+keyframes once they spread (:data:`LIVE_SPAN_MIN_M`). Frames and units: ``docs/conventions.md``;
 the relocalization itself: ``docs/maps.md``.
 
 :func:`open_map` (load + camera/depth-model check) and :func:`save_session_map` (build + atomic
