@@ -34,6 +34,7 @@ COMMANDS: dict[str, str] = {
     "camera": "metricslam_cli.camera_cmd",
     "quantize": "metricslam_cli.quantize_cmd",
     "calibrate": "metricslam_cli.calibrate_cmd",
+    "map": "metricslam_cli.map_cmd",
 }
 
 log = logging.getLogger("metricslam")
