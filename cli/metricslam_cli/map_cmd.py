@@ -24,7 +24,8 @@ import json
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("map", help="inspect a saved map (info) or write its keyframe poses",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="map_command", metavar="MAP_COMMAND", required=True)
+    sub = p.add_subparsers(dest="map_command", metavar="MAP_COMMAND", required=True,
+                           help="info: check the map and print what it holds; keyframes: write its keyframe poses")
     info = sub.add_parser("info", help="check a map and print what it holds")
     info.add_argument("map", help="the map folder")
     info.add_argument("--json", action="store_true", help="print the summary as JSON instead")
