@@ -72,3 +72,17 @@ def test_a_corrupt_map_or_a_file_is_one_error_line(saved_map, tmp_path, capsys):
     (tmp_path / "f.txt").write_text("x")
     assert main(["map", "keyframes", str(tmp_path / "f.txt"), "--out", str(tmp_path / "o.txt")]) == 1
     assert "is a file; a map is a folder" in capsys.readouterr().err
+
+
+def test_it_needs_no_extra(saved_map):
+    """A bare ``pip install metricslam`` inspects maps: every module an extra adds is unimportable."""
+    import subprocess
+    import sys
+
+    from tests.test_core_purity import RUN_WITHOUT_EXTRAS
+
+    _, path = saved_map
+    proc = subprocess.run([sys.executable, "-c", RUN_WITHOUT_EXTRAS, "map", "info", str(path), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads(proc.stdout)["keyframes"] == 9
