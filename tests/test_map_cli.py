@@ -72,6 +72,17 @@ def test_a_corrupt_map_or_a_file_is_one_error_line(saved_map, tmp_path, capsys):
     (tmp_path / "f.txt").write_text("x")
     assert main(["map", "keyframes", str(tmp_path / "f.txt"), "--out", str(tmp_path / "o.txt")]) == 1
     assert "is a file; a map is a folder" in capsys.readouterr().err
+    assert main(["map", "keyframes", str(path.parent / "m"), "--out", str(tmp_path / "f.txt" / "kf.txt")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()  # (the map is corrupt: checked first)
+    assert len(err) == 1
+
+
+def test_an_output_that_cannot_be_written_is_one_error_line(saved_map, tmp_path, capsys):
+    _, path = saved_map
+    (tmp_path / "f.txt").write_text("x")
+    assert main(["map", "keyframes", str(path), "--out", str(tmp_path / "f.txt" / "kf.txt")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out" in err[0] and "is a file, not a folder" in err[0]
 
 
 def test_it_needs_no_extra(saved_map):

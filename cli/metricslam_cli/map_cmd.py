@@ -55,7 +55,10 @@ def run_keyframes(args: argparse.Namespace) -> int:
     from metricslam.slam.map.format import load_map
     from metricslam.trajectory.io import write_kitti_poses, write_tum
 
+    from metricslam_cli.run_cmd import check_output_path
+
     kf = load_map(args.map).arrays["keyframes"]
+    check_output_path(args.out, "--out")
     order = np.argsort(kf["kf_id"], kind="stable")
     if args.format == "tum":
         if np.any(np.diff(kf["t_ns"][order]) <= 0):
