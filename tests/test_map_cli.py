@@ -23,6 +23,8 @@ def saved_map(tmp_path):
     kf["T_map_kf"][:] = np.eye(4)
     kf["T_map_kf"][:, 0, 3] = np.arange(9) * 2.0  # keyframes 2 m apart along x
     kf["t_ns"][:] = np.arange(9) * 500_000_000
+    kf["scale_kf"][:], kf["scale_measured_median"][:] = 2.0, 2.2  # the network reads 10 % more
+    kf["scale_measured_median"][0], kf["scale_factors"][:] = np.nan, 40  # keyframe 0 unmeasured
     saved.source["extended_by"] = [{"sequence": "day2", "mode": "metric"}]
     save_map(saved, tmp_path / "m")
     return saved, tmp_path / "m"
@@ -35,10 +37,13 @@ def test_info_describes_the_map(saved_map, capsys):
     assert (s["keyframes"], s["landmarks"], s["sessions"], s["metric"]) == (9, len(saved.arrays["landmarks"]["p_map_m"]), 2, True)
     assert s["vocabulary_id"] == saved.vocabulary_id and s["depth_model_id"] == saved.depth_model_id
     assert s["time_span_s"] == 4.0 and s["box_max"][0] - s["box_min"][0] == 16.0
+    assert (s["keyframes_scale_measured"], s["scale_factors"]) == (8, 360)
+    assert np.isclose(s["scale_gap_log_median"], np.log(1.1)) and np.isclose(s["scale_gap_log_p90"], np.log(1.1))
     assert s["bytes"] == sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
     assert main(["map", "info", str(path)]) == 0
     text = capsys.readouterr().out
     assert "9 keyframes" in text and "extended by day2" in text and "16.0 x 0.0 x 0.0 m box" in text
+    assert "8 of 9 keyframes measured (360 scale factors)" in text and "10.0 % apart at the median" in text
 
 
 def test_keyframes_writes_the_map_frame_poses(saved_map, tmp_path):
@@ -56,7 +61,10 @@ def test_keyframes_of_sessions_on_their_own_clocks_are_kitti_only(tmp_path, caps
     saved = random_map(5, n_kf=6)
     kf = saved.arrays["keyframes"]
     kf["kf_id"][:], kf["t_ns"][:] = np.arange(6), [0, 1, 2, 0, 1, 2]  # session 2 restarts its clock
+    kf["scale_measured_median"][:] = np.nan  # no depth network (a --no-scale map)
     save_map(saved, tmp_path / "m")
+    assert main(["map", "info", str(tmp_path / "m")]) == 0
+    assert "learned scale: no keyframe measured" in capsys.readouterr().out
     assert main(["map", "keyframes", str(tmp_path / "m"), "--out", str(tmp_path / "kf.txt")]) == 1
     assert "use --format kitti" in capsys.readouterr().err and not (tmp_path / "kf.txt").exists()
     assert main(["map", "keyframes", str(tmp_path / "m"), "--out", str(tmp_path / "kf.txt"), "--format", "kitti"]) == 0
