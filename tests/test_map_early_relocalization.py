@@ -121,12 +121,18 @@ def test_before_metric_scale_two_matches_agree_on_where_they_place_the_keyframes
 
 
 
-def _early_queries(early_after: bool, matching: bool) -> list[int]:
+class _FailingDepth:
+    def inv_depth_map(self, image, camera):
+        raise RuntimeError("depth service unreachable")
+
+
+def _early_queries(early_after: bool, matching: bool, depth_source: object = None) -> list[int]:
     """Keyframe k settles at frame 2k and is marginalized 10 keyframes later; the second early
     match relocalizes; after relocalization queries verify only when ``matching``. Returns the
     keyframes queried early."""
     window = SlidingWindow(VOConfig(), CAMERA, counters={"keyframes": 0}, timings_ms={})
     r = _bare_relocalizer(window, np.eye(4), early_after)
+    r._depth_source = depth_source
     asked: list[tuple[int, bool]] = []
 
     def query(kf, frame_now, inv_depth_map=None, early=False):
@@ -155,3 +161,6 @@ def test_after_relocalization_early_queries_go_on_until_marginalized_keyframes_m
     assert _early_queries(True, True) == list(range(min(10 + EARLY_AFTER_MATCHES, 2 + EARLY_AFTER_QUERIES)))
     assert _early_queries(True, False) == list(range(2 + EARLY_AFTER_QUERIES))
     assert _early_queries(False, True) == [0, 1]
+    # a depth source that fails (or does not answer within EARLY_DEPTH_TIMEOUT_S): the tracking
+    # thread stops waiting on it after relocalization — the query that found out is the last
+    assert _early_queries(True, True, _FailingDepth()) == [0, 1, 2]

@@ -68,9 +68,9 @@ MIN_AGREEING_MATCHES = 2
 #: the session is relocalized; each asks the depth source for the keyframe (waiting at most this
 #: long, on the tracking thread)
 EARLY_MATCHES, EARLY_DEPTH_TIMEOUT_S = 6, 1.0
-#: with ``early_after_relocalized`` they go on after it (the live poses' alignment needs matches
-#: spread along the path before the keyframes reach the graph) until this many marginalized
-#: keyframes' matches were recorded since, at most this many more queries
+#: with ``early_after_relocalized`` they go on after it (the live alignment needs matches spread
+#: along the path before the keyframes reach the graph) until this many marginalized keyframes'
+#: matches were recorded since, at most this many more queries (none after a depth request failed)
 EARLY_AFTER_MATCHES, EARLY_AFTER_QUERIES = 3, 12
 
 
@@ -161,8 +161,9 @@ class Relocalizer:
             if after or (self.first_frame is None and len(self.matches) < EARLY_MATCHES):
                 self._early_left -= after
                 kf = ev.keyframe
-                inv_depth = (None if self._depth_source is None else
-                             ask_depth(self._depth_source, kf.image, kf.camera, EARLY_DEPTH_TIMEOUT_S)[0])
+                inv_depth, why = ((None, "") if self._depth_source is None else
+                                  ask_depth(self._depth_source, kf.image, kf.camera, EARLY_DEPTH_TIMEOUT_S))
+                self._early_left = 0 if after and why else self._early_left  # depth slow or failing: no more waits
                 m = self.query(kf, ev.frame_index_now, inv_depth, early=True)
                 if m is not None:
                     self._record(replace(m, S_world_kf_vo=sim3.from_se3(ev.keyframe.T_vo_kf),
@@ -214,9 +215,8 @@ class Relocalizer:
 
     def query(self, kf, frame_now: int, inv_depth_map: np.ndarray | None = None,
               early: bool = False) -> RelocMatch | None:
-        """Verify keyframe ``kf`` (a MarginalizedKeyframe; ``inv_depth_map`` (h, w) 1/m its
-        network depth, None: landmarks only) against its best map candidates (``early``: a
-        window keyframe's snapshot, compared with the previous early query's)."""
+        """Verify keyframe ``kf`` (a MarginalizedKeyframe; ``inv_depth_map`` (h, w) 1/m its network
+        depth, None: landmarks only) against its best map candidates (``early``: a window snapshot)."""
         t0 = time.perf_counter()
         try:
             return self._query(kf, frame_now, inv_depth_map, early)
