@@ -15,6 +15,7 @@ import numpy as np
 
 from metricslam.geometry import sim3
 from metricslam.slam.map.localization import LIVE_RIGID_LOG_SCALE, LIVE_SPAN_MIN_M, MapLocalization
+from metricslam.slam.map.relocalizer import agree_at
 from tests.test_map_format import CAMERA, random_map
 
 RIGID = sim3.from_rts(np.eye(3), np.array([1.0, 0.0, 2.0]), 1.0)
@@ -31,11 +32,13 @@ class _Relocalizer:
         S = RIGID if metric_world else sim3.from_rts(np.eye(3), np.array([1.0, 0.0, 2.0]), self.pre_scale)
         return S, 2, 0
 
-    def candidates(self, poses, metric_world: bool = False):
-        """Each match: the S_map_world it implies, its scale the one view's (pre_scale), its
-        position where it places its keyframe (S · p_world = p_map)."""
-        return [(p_map, sim3.from_rts(np.eye(3), p_map - self.pre_scale * p_world, self.pre_scale))
-                for p_world, p_map in self.placed]
+    def agreeing(self, S_map_world, poses, metric_world: bool = False):
+        """Each match (standing for its map position) with its keyframe's world position, when the
+        S_map_world it implies (its scale the one view's, pre_scale; S · p_world = p_map) agrees
+        with ``S_map_world`` where it places the keyframe (the relocalizer's own test)."""
+        return [(p_map, p_world) for p_world, p_map in self.placed
+                if agree_at(S_map_world, sim3.from_rts(np.eye(3), p_map - self.pre_scale * p_world, self.pre_scale),
+                            p_world[None], metric_world)]
 
     def map_position_m(self, m):
         return m

@@ -35,7 +35,7 @@ from metricslam.geometry import sim3
 from metricslam.slam.events import Solved
 from metricslam.slam.graph.config import LoopConfig
 from metricslam.slam.map.format import SavedMap, load_map, save_map
-from metricslam.slam.map.relocalizer import MIN_AGREEING_MATCHES, Relocalizer, agree_at, to_map_frame
+from metricslam.slam.map.relocalizer import MIN_AGREEING_MATCHES, Relocalizer, to_map_frame
 from metricslam.slam.types import PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -173,17 +173,11 @@ class MapLocalization:
         kept: a fitted one is unobservable about the direction of travel on a straight street) to
         where the matches that agree with it place their keyframes in the map, once
         :data:`LIVE_SPAN_MIN_MATCHES` of them span :data:`LIVE_SPAN_MIN_M`; else ``S_live``."""
-        reloc = self.relocalizer
-        p_map, p_world = [], []
-        for m, S in reloc.candidates(poses, metric_world=False):
-            p = reloc.map_position_m(m)
-            q = sim3.transform_points(sim3.inverse(S), p[None])  # the keyframe in the world: S·q = p
-            if agree_at(S_live, S, q, metric_world=False):
-                p_map.append(p)
-                p_world.append(q[0])
-        if len(p_map) < LIVE_SPAN_MIN_MATCHES:
+        agreeing = self.relocalizer.agreeing(S_live, poses, metric_world=False)
+        if len(agreeing) < LIVE_SPAN_MIN_MATCHES:
             return S_live
-        p_map, p_world = np.array(p_map), np.array(p_world)
+        p_map = np.array([self.relocalizer.map_position_m(m) for m, _ in agreeing])
+        p_world = np.array([p for _, p in agreeing])
         if np.linalg.norm(p_map - p_map.mean(axis=0), axis=1).max() < LIVE_SPAN_MIN_M:
             return S_live
         R = sim3.split(S_live)[0]

@@ -54,7 +54,7 @@ def merge_session(saved: SavedMap, session: SavedMap, relocalizer: Relocalizer, 
     kf = session.arrays["keyframes"]
     S_world_kf = [sim3.from_rts(T[:3, :3], T[:3, 3], s) for T, s in zip(kf["T_map_kf"], kf["scale_kf"])]
     index = {int(f): i for i, f in enumerate(kf["frame_index"])}
-    cross = [(m, index[m.kf_frame]) for m in relocalizer.agreeing(
+    cross = [(m, index[m.kf_frame]) for m, _ in relocalizer.agreeing(
         S_map_world, {int(f): S_world_kf[i] for f, i in index.items()}, metric_world)]
     if not cross:
         raise MapError("--map with --save-map: no verified match agrees with the relocalization; "

@@ -333,10 +333,10 @@ class Relocalizer:
         return sim3.retract(medoid[0], mean), len(kept), len(self.matches) - len(kept)
 
     def agreeing(self, S_map_world: np.ndarray, S_world_kf_by_frame: dict[int, np.ndarray],
-                 metric_world: bool) -> list[RelocMatch]:
-        """The matches whose keyframe is in ``S_world_kf_by_frame`` and that agree with
+                 metric_world: bool) -> list[tuple[RelocMatch, np.ndarray]]:
+        """``(match, its keyframe's world position (3,))`` of the matches that agree with
         ``S_map_world`` (4, 4) where they place their keyframe (:func:`agree_at`)."""
-        return [m for m, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)
+        return [(m, S_world_kf[:3, 3]) for m, S, S_world_kf in self._candidates(S_world_kf_by_frame, metric_world)
                 if agree_at(S_map_world, S, S_world_kf[None, :3, 3], metric_world)]
 
     def map_position_m(self, m: RelocMatch) -> np.ndarray:

@@ -154,7 +154,7 @@ class SegmentRelocalizer:
             self._reloc = None  # the link holds: the ordinary loop detector takes it from here
             log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)", self._segment, off)
             return
-        agreeing = reloc.agreeing(S_map_world, poses, metric)  # window keyframes' early matches too
+        agreeing = [m for m, _ in reloc.agreeing(S_map_world, poses, metric)]  # window keyframes' early ones too
         p_map = np.array([reloc.map_position_m(m) for m in agreeing]).reshape(-1, 3)
         span_m = float(np.max(np.linalg.norm(p_map[:, None] - p_map[None], axis=2))) if len(p_map) else 0.0
         in_graph = [m for m in agreeing if m.kf_frame in poses]
