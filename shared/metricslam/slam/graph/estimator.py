@@ -228,12 +228,12 @@ class GlobalEstimator:
         ungated (the relocalization's matches agreed with each other instead)."""
         self._pending_relinks.append((int(segment_id), np.asarray(S_map_world, float), int(frame_now), loops))
 
-    def link_offset_sigmas(self, segment_id: int, S_map_world: np.ndarray) -> float:
+    def link_offset_sigmas(self, segment_id: int, S_map_world: np.ndarray) -> float | None:
         """How far off its link (the largest of rotation, translation, log scale, in the link's own
-        sigmas) ``S_map_world`` (4, 4) moves segment ``segment_id``'s first keyframe; 0 for a
-        segment without a link."""
+        sigmas) ``S_map_world`` (4, 4) moves segment ``segment_id``'s first keyframe; None while
+        the segment has no link in the graph (its first keyframe still in the VO window)."""
         if segment_id not in self._links:
-            return 0.0
+            return None
         last_id, first_id, S_link, sig_link = self._links[segment_id]
         S_moved = sim3.inverse(self.graph.estimate(last_id)) @ S_map_world @ self.graph.estimate(first_id)
         (R1, t1, s1), (R2, t2, s2) = sim3.split(S_link), sim3.split(S_moved)

@@ -150,6 +150,8 @@ class SegmentRelocalizer:
         if S_map_world is None:
             return
         off = backend.estimator.link_offset_sigmas(self._segment, S_map_world)
+        if off is None:
+            return  # its link is not in the graph yet: nothing to confirm or replace
         if off <= LINK_CONTRADICTED_SIGMAS:
             self._reloc = None  # the link holds: the ordinary loop detector takes it from here
             log.info("tracking segment %d: relocalized where its link put it (%.1f of its sigmas)", self._segment, off)
